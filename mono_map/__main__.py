@@ -1,0 +1,5 @@
+import sys
+
+from mono_map.cli import main
+
+sys.exit(main())

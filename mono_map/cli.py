@@ -1,0 +1,57 @@
+"""``mono-map``: a thin command line over the library.
+
+Each concept's subcommands live beside it (``mono_map/<concept>/commands.py``) and
+register themselves here; heavy imports (torch, open3d, octomap) happen inside the
+commands, so ``mono-map --help`` stays instant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from mono_map import __version__
+from mono_map.errors import MonoMapError
+
+# Modules whose ``register(subparsers)`` adds subcommands, in help order.
+COMMAND_MODULES = (
+    "mono_map.data.commands",      # synth
+    "mono_map.depth.commands",     # train, predict, eval-depth
+    "mono_map.mapping.commands",   # build, eval
+    "mono_map.viz.commands",       # view
+    "mono_map.demo",               # demo (the README's main job)
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mono-map",
+        description="Uncertainty-aware monocular mapping: depth distributions -> OctoMap -> evaluation.",
+    )
+    parser.add_argument("--version", action="version", version=f"mono-map {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        result = args.func(args)
+    except MonoMapError as exc:
+        print(f"mono-map: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("mono-map: interrupted", file=sys.stderr)
+        return 130
+    return int(result or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

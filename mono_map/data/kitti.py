@@ -1,0 +1,366 @@
+"""KITTI odometry sequences (real or synthetic) read through ``pykitti.odometry``.
+
+Layout under a data root (the standard KITTI odometry download)::
+
+    sequences/XX/image_2/NNNNNN.png   colour left camera (RGB)
+    sequences/XX/velodyne/NNNNNN.bin  float32 x y z reflectance, velodyne frame
+    sequences/XX/calib.txt            P0..P3 (3×4 rectified projections), Tr (velodyne → cam0)
+    sequences/XX/times.txt            seconds
+    sequences/XX/depth_2/NNNNNN.png   optional dense depth of image_2 (synthetic sequences only)
+    poses/XX.txt                      T_world_cam0, 3×4 per line; world = first cam0 frame
+
+Every file is validated before use; bad input raises :class:`MonoMapError` naming the
+file.  Nothing here knows whether the sequence is real or synthetic.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from mono_map import geometry
+from mono_map.errors import MonoMapError
+from mono_map.paths import data_root
+
+# ---------------------------------------------------------------------------------------------
+# Validating parsers (array in / array out).  pykitti does the same parsing without checks.
+# ---------------------------------------------------------------------------------------------
+
+REQUIRED_CALIB_KEYS = ("P2", "Tr")
+
+
+def read_calib_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Parse a KITTI ``calib.txt`` tolerantly (trailing spaces, no final newline).
+
+    Returns ``{key: float64 array}``; checks that P2 and Tr hold 12 finite numbers,
+    that P2's focal lengths are positive and that Tr's rotation is orthonormal.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MonoMapError(f"{path}: calibration file not found")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MonoMapError(f"{path}: unreadable calibration file ({exc})") from None
+    data: dict[str, np.ndarray] = {}
+    for lineno, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        if ":" not in line:
+            raise MonoMapError(f"{path}:{lineno}: malformed calibration line (expected 'KEY: numbers')")
+        key, value = line.split(":", 1)
+        try:
+            data[key.strip()] = np.array([float(x) for x in value.split()], dtype=np.float64)
+        except ValueError:
+            raise MonoMapError(f"{path}:{lineno}: non-numeric value in calibration entry '{key.strip()}'") from None
+    for key in REQUIRED_CALIB_KEYS:
+        if key not in data:
+            raise MonoMapError(f"{path}: calibration entry '{key}' missing (need {', '.join(REQUIRED_CALIB_KEYS)})")
+        if data[key].size != 12 or not np.all(np.isfinite(data[key])):
+            raise MonoMapError(f"{path}: calibration entry '{key}' must hold 12 finite numbers (got {data[key].size})")
+    P2 = data["P2"].reshape(3, 4)
+    if P2[0, 0] <= 0 or P2[1, 1] <= 0 or abs(P2[2, 2] - 1.0) > 1e-6:
+        raise MonoMapError(f"{path}: P2 is not a rectified projection (need fx, fy > 0 and P2[2,2] = 1)")
+    R = data["Tr"].reshape(3, 4)[:, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+        raise MonoMapError(f"{path}: Tr's rotation is not orthonormal (is it a velodyne→cam0 transform?)")
+    return data
+
+
+def read_poses_file(path: str | os.PathLike) -> np.ndarray:
+    """Read KITTI poses (12 numbers a line, T_world_cam0 3×4) as float64 (N, 4, 4)."""
+    path = Path(path)
+    if not path.is_file():
+        raise MonoMapError(f"{path}: poses file not found")
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            values = [float(x) for x in line.split()]
+        except ValueError:
+            raise MonoMapError(f"{path}:{lineno}: non-numeric pose value") from None
+        if len(values) != 12:
+            raise MonoMapError(f"{path}:{lineno}: a pose needs 12 numbers (got {len(values)})")
+        rows.append(values)
+    if not rows:
+        raise MonoMapError(f"{path}: poses file is empty")
+    poses = np.zeros((len(rows), 4, 4))
+    poses[:, :3, :] = np.array(rows).reshape(-1, 3, 4)
+    poses[:, 3, 3] = 1.0
+    if not np.all(np.isfinite(poses)):
+        bad = int(np.argwhere(~np.isfinite(poses).all(axis=(1, 2)))[0, 0]) + 1
+        raise MonoMapError(f"{path}:{bad}: pose holds NaN or infinity")
+    R = poses[:, :3, :3]
+    err = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    if err.max() > 1e-3:
+        raise MonoMapError(f"{path}:{int(err.argmax()) + 1}: pose rotation is not orthonormal")
+    return poses
+
+
+def read_times_file(path: str | os.PathLike) -> np.ndarray:
+    """Read ``times.txt`` (one timestamp in seconds a line) as float64 (N,)."""
+    path = Path(path)
+    if not path.is_file():
+        raise MonoMapError(f"{path}: timestamps file not found")
+    try:
+        times = np.array([float(x) for x in path.read_text().split()], dtype=np.float64)
+    except ValueError:
+        raise MonoMapError(f"{path}: non-numeric timestamp") from None
+    if not np.all(np.isfinite(times)):
+        raise MonoMapError(f"{path}: timestamp is NaN or infinite")
+    return times
+
+
+def read_velodyne_bin(path: str | os.PathLike) -> np.ndarray:
+    """Read a velodyne scan: float32 (N, 4) x y z reflectance in the velodyne frame (metres)."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError:
+        raise MonoMapError(f"{path}: velodyne scan not found") from None
+    if size % 16:
+        raise MonoMapError(f"{path}: velodyne scan size {size} B is not a multiple of 16 (4 float32 per point)")
+    scan = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    if not np.all(np.isfinite(scan)):
+        raise MonoMapError(f"{path}: velodyne scan holds NaN or infinite values")
+    return scan
+
+
+def read_image_rgb(path: str | os.PathLike) -> np.ndarray:
+    """Read an image as H×W×3 uint8 RGB."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise MonoMapError(f"{path}: unreadable image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+# ---------------------------------------------------------------------------------------------
+# Calibration, frames, sequences
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Calibration of image_2 and the velodyne, from an odometry ``calib.txt``.
+
+    P2: 3×4 rectified projection of image_2 (P2 = K2·[I | t2]).
+    K2: 3×3 intrinsics of image_2 (pixels).
+    T_cam0_velo: Tr, velodyne → cam0.  T_cam2_cam0: [I | t2] with t2 = K2⁻¹·P2[:, 3]
+    (≈ +0.06 m along x).  T_cam2_velo = T_cam2_cam0 · T_cam0_velo.
+    """
+
+    P2: np.ndarray
+    T_cam0_velo: np.ndarray
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike) -> "Calibration":
+        data = read_calib_file(path)
+        return cls(P2=data["P2"].reshape(3, 4), T_cam0_velo=geometry.make_pose(
+            data["Tr"].reshape(3, 4)[:, :3], data["Tr"].reshape(3, 4)[:, 3]))
+
+    @property
+    def K2(self) -> np.ndarray:
+        return geometry.intrinsics_from_projection(self.P2)
+
+    @property
+    def T_cam2_cam0(self) -> np.ndarray:
+        return geometry.T_cam_cam0_from_projection(self.P2)
+
+    @property
+    def T_cam2_velo(self) -> np.ndarray:
+        return self.T_cam2_cam0 @ self.T_cam0_velo
+
+
+def read_object_calibration(path: str | os.PathLike) -> Calibration:
+    """Calibration of a KITTI *object*-benchmark frame (P2, R0_rect, Tr_velo_to_cam) as a :class:`Calibration`.
+
+    The object format keeps the rectifying rotation apart: velodyne → rectified cam0 is
+    R0_rect · Tr_velo_to_cam, which is what the odometry ``Tr`` already is.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MonoMapError(f"{path}: calibration file not found")
+    data: dict[str, np.ndarray] = {}
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if ":" not in line:
+            continue
+        key, value = line.split(":", 1)
+        try:
+            data[key.strip()] = np.array([float(x) for x in value.split()], dtype=np.float64)
+        except ValueError:
+            raise MonoMapError(f"{path}:{lineno}: non-numeric value in calibration entry '{key.strip()}'") from None
+    sizes = {"P2": 12, "R0_rect": 9, "Tr_velo_to_cam": 12}
+    for key, size in sizes.items():
+        if key not in data or data[key].size != size:
+            raise MonoMapError(f"{path}: object calibration entry '{key}' missing or not {size} numbers")
+    R0 = geometry.make_pose(data["R0_rect"].reshape(3, 3))
+    Tr = data["Tr_velo_to_cam"].reshape(3, 4)
+    return Calibration(P2=data["P2"].reshape(3, 4), T_cam0_velo=R0 @ geometry.make_pose(Tr[:, :3], Tr[:, 3]))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One time step of a sequence, everything in image_2's terms.
+
+    image: H×W×3 uint8 RGB; K: 3×3 image_2 intrinsics; T_world_cam2: 4×4 (metres,
+    world = first cam0 frame); T_cam2_velo: 4×4; velodyne: (N, 4) float32 in the
+    velodyne frame or None; depth: H×W float32 metres dense ground truth or None.
+    """
+
+    index: int
+    time: float
+    image: np.ndarray
+    K: np.ndarray
+    T_world_cam2: np.ndarray
+    T_cam2_velo: np.ndarray
+    velodyne: np.ndarray | None = None
+    depth: np.ndarray | None = None
+
+
+class KittiSequence:
+    """A validated KITTI odometry sequence under ``root`` (real or synthetic)."""
+
+    def __init__(self, root: str | os.PathLike, name: str):
+        import pykitti
+
+        self.root = Path(root)
+        self.name = name
+        self.path = self.root / "sequences" / name
+        if not self.path.is_dir():
+            raise MonoMapError(
+                f"{self.path}: sequence '{name}' not found (expected KITTI odometry layout "
+                f"sequences/{name}/{{image_2,velodyne,calib.txt,times.txt}} under {self.root})")
+        self.calib = Calibration.from_file(self.path / "calib.txt")
+        times = read_times_file(self.path / "times.txt")
+        pose_path = self.root / "poses" / f"{name}.txt"
+        poses = read_poses_file(pose_path) if pose_path.is_file() else None
+
+        # pykitti lists the files and loads calib, timestamps and poses (it prints when
+        # poses are absent, as for KITTI's test sequences 11-21: keep that quiet).
+        with contextlib.redirect_stdout(io.StringIO()):
+            self._kitti = pykitti.odometry(str(self.root), name)
+        self.image_files = [Path(f) for f in self._kitti.cam2_files]
+        self.velodyne_files = [Path(f) for f in self._kitti.velo_files]
+        n = len(self.image_files)
+        if n == 0:
+            raise MonoMapError(f"{self.path / 'image_2'}: no PNG images")
+        if len(times) != n:
+            raise MonoMapError(f"{self.path / 'times.txt'}: {len(times)} timestamps for {n} images in image_2/")
+        if poses is not None and len(poses) != n:
+            raise MonoMapError(f"{pose_path}: {len(poses)} poses for {n} images in {self.path / 'image_2'}")
+        if self.velodyne_files and len(self.velodyne_files) != n:
+            raise MonoMapError(
+                f"{self.path / 'velodyne'}: {len(self.velodyne_files)} scans for {n} images in image_2/")
+        self.times = times
+        self.poses_cam0 = poses
+        self.pose_path = pose_path
+
+    def __len__(self) -> int:
+        return len(self.image_files)
+
+    def __repr__(self) -> str:
+        return f"KittiSequence({str(self.root)!r}, {self.name!r}, frames={len(self)})"
+
+    def _check_index(self, i: int) -> int:
+        if not -len(self) <= i < len(self):
+            raise MonoMapError(f"{self.path}: frame {i} out of range (sequence has {len(self)} frames)")
+        return i % len(self)
+
+    @property
+    def has_poses(self) -> bool:
+        return self.poses_cam0 is not None
+
+    @property
+    def is_synthetic(self) -> bool:
+        """True for sequences written by mono-map's generator (they carry ``synth.json``)."""
+        return (self.path / "synth.json").is_file()
+
+    @cached_property
+    def image_size(self) -> tuple[int, int]:
+        """(H, W) of image_2, from the first image; every image must match it."""
+        return tuple(read_image_rgb(self.image_files[0]).shape[:2])  # type: ignore[return-value]
+
+    def T_world_cam0(self, i: int) -> np.ndarray:
+        if self.poses_cam0 is None:
+            raise MonoMapError(f"{self.pose_path}: poses not available for sequence '{self.name}'")
+        return self.poses_cam0[self._check_index(i)]
+
+    def T_world_cam2(self, i: int) -> np.ndarray:
+        """Pose of image_2 in the world (first cam0 frame): T_world_cam0 · inv(T_cam2_cam0)."""
+        return self.T_world_cam0(i) @ geometry.pose_inverse(self.calib.T_cam2_cam0)
+
+    def T_world_velo(self, i: int) -> np.ndarray:
+        """Pose of the velodyne in the world: T_world_cam0 · Tr."""
+        return self.T_world_cam0(i) @ self.calib.T_cam0_velo
+
+    def image(self, i: int) -> np.ndarray:
+        """image_2 of frame i: H×W×3 uint8 RGB."""
+        path = self.image_files[self._check_index(i)]
+        img = read_image_rgb(path)
+        if img.shape[:2] != self.image_size:
+            raise MonoMapError(f"{path}: image is {img.shape[1]}×{img.shape[0]}, "
+                               f"expected {self.image_size[1]}×{self.image_size[0]} like the sequence's first image")
+        return img
+
+    def velodyne(self, i: int) -> np.ndarray:
+        """Velodyne scan of frame i: (N, 4) float32 x y z reflectance (velodyne frame, metres)."""
+        if not self.velodyne_files:
+            raise MonoMapError(f"{self.path / 'velodyne'}: no velodyne scans for sequence '{self.name}'")
+        return read_velodyne_bin(self.velodyne_files[self._check_index(i)])
+
+    def depth(self, i: int) -> np.ndarray | None:
+        """Dense ground-truth depth of image_2 (metres, 0 = none) if ``depth_2/`` has it, else None."""
+        from mono_map.data.depth_png import read_depth_png
+
+        path = self.path / "depth_2" / self.image_files[self._check_index(i)].name
+        if not path.is_file():
+            return None
+        depth = read_depth_png(path)
+        if depth.shape != self.image_size:
+            raise MonoMapError(f"{path}: depth is {depth.shape[1]}×{depth.shape[0]}, "
+                               f"expected {self.image_size[1]}×{self.image_size[0]}")
+        return depth
+
+    def lidar_depth(self, i: int) -> np.ndarray:
+        """Sparse depth of image_2 from the velodyne scan (metres, 0 = no value), KITTI's practice."""
+        scan = self.velodyne(i)
+        pts_cam2 = geometry.transform_points(self.calib.T_cam2_velo, scan[:, :3])
+        return geometry.lidar_depth_image(pts_cam2, self.calib.K2, *self.image_size)
+
+    def frame(self, i: int, velodyne: bool = False, depth: bool = False) -> Frame:
+        i = self._check_index(i)
+        return Frame(
+            index=i,
+            time=float(self.times[i]),
+            image=self.image(i),
+            K=self.calib.K2,
+            T_world_cam2=self.T_world_cam2(i),
+            T_cam2_velo=self.calib.T_cam2_velo,
+            velodyne=self.velodyne(i) if velodyne else None,
+            depth=self.depth(i) if depth else None,
+        )
+
+
+def open_sequence(root: str | os.PathLike | None, name: str, frames: int | None = None,
+                  generate: bool = True) -> KittiSequence:
+    """Open sequence ``name`` under ``root`` (``None`` → :func:`mono_map.paths.data_root`).
+
+    If the root lacks it (or holds a shorter synthetic prefix than ``frames``) and a
+    recipe ``sequences/<name>.toml`` exists, the synthetic sequence is generated first,
+    saying so.  Real KITTI sequences are never modified.
+    """
+    root = data_root(root)
+    if generate:
+        from mono_map.data.synth import ensure_sequence
+
+        ensure_sequence(root, name, frames=frames)
+    return KittiSequence(root, name)
