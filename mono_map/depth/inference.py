@@ -1,0 +1,185 @@
+"""Run a trained depth checkpoint on RGB images: expected depth + entropy (+ distributions).
+
+Images are resized (aspect kept) to fit the model's input size, padded by edge replication
+to exactly that size (a multiple of 32), run, cropped back, and the depth / entropy maps are
+bilinearly up-sampled to the full input resolution.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from mono_map.depth.losses import decode
+from mono_map.depth.networks import DepthNet, ModelConfig
+from mono_map.errors import MonoMapError
+from mono_map.paths import CHECKPOINT_DIR
+
+CHECKPOINT_FORMAT = "mono-map-depth"
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class DepthPrediction:
+    depth: np.ndarray                 # H×W float32, metres, expected depth at full input resolution
+    entropy: np.ndarray               # H×W float32, nats (non-distribution heads: their uncertainty)
+    probs: np.ndarray | None = None   # K×H×W float32 (softmax over logits), only if asked
+    argmax: np.ndarray | None = None  # H×W float32, metres, centre of the most likely bin
+
+
+def default_checkpoint(head: str = "binary") -> Path:
+    return CHECKPOINT_DIR / f"{head}.pt"
+
+
+def fit_size(h: int, w: int, max_h: int, max_w: int) -> tuple[int, int]:
+    """Largest (h', w') with the aspect ratio of (h, w) that fits into (max_h, max_w) pixels."""
+    s = min(max_h / h, max_w / w)
+    return min(max_h, max(1, round(h * s))), min(max_w, max(1, round(w * s)))
+
+
+def save_checkpoint(path: str | os.PathLike, model: DepthNet, training: dict | None = None,
+                    optimizer_state: dict | None = None) -> None:
+    """Write config + bins + weights (+ training metadata / optimizer state) atomically."""
+    from mono_map.io import atomic_path
+
+    cfg = model.cfg
+    payload = {
+        "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
+        "model_config": cfg.to_dict(), "bins": cfg.bins.to_dict(),
+        "bin_centres": torch.as_tensor(cfg.bins.centres),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "training": training or {},
+    }
+    if optimizer_state is not None:
+        payload["optimizer"] = optimizer_state
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+
+
+def load_checkpoint(path: str | os.PathLike, device: str = "cpu") -> tuple[DepthNet, dict]:
+    """Load and validate a checkpoint -> (model in eval mode, payload). Raises MonoMapError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise MonoMapError(f"{path}: checkpoint not found")
+    try:
+        payload = torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a corrupt file
+        raise MonoMapError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {str(exc)[:120]})") from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise MonoMapError(f"{path}: not a mono-map depth checkpoint (missing format tag)")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise MonoMapError(f"{path}: checkpoint version {payload.get('version')} unsupported (expected {CHECKPOINT_VERSION})")
+    for key in ("model_config", "bins", "state_dict"):
+        if key not in payload:
+            raise MonoMapError(f"{path}: checkpoint lacks '{key}'")
+    cfg = ModelConfig.from_dict(payload["model_config"], source=str(path))
+    if payload["bins"] != cfg.bins.to_dict():
+        raise MonoMapError(f"{path}: stored bins {payload['bins']} disagree with the model config {cfg.bins.to_dict()}")
+    if "bin_centres" in payload and not np.allclose(np.asarray(payload["bin_centres"]), cfg.bins.centres, rtol=1e-6):
+        raise MonoMapError(f"{path}: stored bin centres disagree with the bin formula")
+    model = DepthNet(cfg)
+    state = payload["state_dict"]
+    own = model.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    bad = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
+    if missing or unexpected or bad:
+        raise MonoMapError(f"{path}: weights do not match the '{cfg.name}/{cfg.head}' architecture "
+                           f"(missing {missing[:3]}, unexpected {unexpected[:3]}, wrong shape {bad[:3]})")
+    model.load_state_dict(state)
+    for k, v in state.items():
+        if v.is_floating_point() and not torch.isfinite(v).all():
+            raise MonoMapError(f"{path}: weights contain NaN/inf ({k})")
+    return model.to(device).eval(), payload
+
+
+class DepthPredictor:
+    """A loaded depth model. ``space`` picks the expectation: "log" exp(Σp log d) or "linear" Σp d."""
+
+    def __init__(self, model: DepthNet, checkpoint: Path | None = None, device: str = "cpu",
+                 space: str = "log", training: dict | None = None):
+        self.model = model.eval()
+        self.cfg = model.cfg
+        self.bins = model.cfg.bins
+        self.checkpoint = checkpoint
+        self.device = device
+        self.space = space
+        self.training = training or {}
+
+    @classmethod
+    def load(cls, checkpoint: str | os.PathLike | None = None, device: str = "cpu",
+             space: str = "log") -> "DepthPredictor":
+        """None -> the shipped binary checkpoint; a bare head name (e.g. "softmax") -> its shipped checkpoint."""
+        if checkpoint is None:
+            checkpoint = default_checkpoint("binary")
+        elif not Path(checkpoint).suffix and not Path(checkpoint).exists():
+            checkpoint = default_checkpoint(str(checkpoint))
+        model, payload = load_checkpoint(checkpoint, device)
+        return cls(model, Path(checkpoint), device, space, payload.get("training"))
+
+    @property
+    def head(self) -> str:
+        return self.cfg.head
+
+    def _prepare(self, images: list[np.ndarray]) -> tuple[torch.Tensor, tuple[int, int], tuple[int, int]]:
+        import cv2
+
+        h, w = images[0].shape[:2]
+        for im in images:
+            if im.ndim != 3 or im.shape[2] != 3 or im.dtype != np.uint8:
+                raise MonoMapError(f"image: expected H×W×3 uint8 RGB, got {im.shape} {im.dtype}")
+            if im.shape[:2] != (h, w):
+                raise MonoMapError("images: a batch must share one size")
+        H, W = self.cfg.input_height, self.cfg.input_width
+        fh, fw = fit_size(h, w, H, W)
+        batch = []
+        for im in images:
+            r = cv2.resize(im, (fw, fh), interpolation=cv2.INTER_AREA) if (fh, fw) != (h, w) else im
+            r = np.pad(r, ((0, H - fh), (0, W - fw), (0, 0)), mode="edge")
+            batch.append(r)
+        x = torch.from_numpy(np.stack(batch)).permute(0, 3, 1, 2).float().div_(255.0)
+        return x.to(self.device), (fh, fw), (h, w)
+
+    @torch.inference_mode()
+    def predict_batch(self, images: list[np.ndarray], with_probs: bool = False) -> list[DepthPrediction]:
+        if not images:
+            return []
+        x, (fh, fw), (h, w) = self._prepare(images)
+        mc = self.cfg.mc_samples if get_dropout(self.model) else 0
+        out = self.model(x, mc_samples=mc)
+        out = out[..., :fh, :fw]
+        res = decode(self.model.head, out, self.bins, self.space, with_probs=with_probs)
+
+        def up(t):  # (B,C,h',w') -> (B,C,h,w)
+            return F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False) if (fh, fw) != (h, w) else t
+
+        depth = up(res["depth"].unsqueeze(1))[:, 0].clamp(self.bins.min_depth, self.bins.max_depth)
+        ent = up(res["entropy"].unsqueeze(1))[:, 0]
+        amax = up(res["argmax"].unsqueeze(1))[:, 0]
+        probs = up(res["probs"]) if (with_probs and res["probs"] is not None) else None
+        preds = []
+        for b in range(len(images)):
+            preds.append(DepthPrediction(
+                depth=depth[b].cpu().numpy().astype(np.float32), entropy=ent[b].cpu().numpy().astype(np.float32),
+                probs=None if probs is None else probs[b].cpu().numpy().astype(np.float32),
+                argmax=amax[b].cpu().numpy().astype(np.float32)))
+        return preds
+
+    def predict(self, image: np.ndarray, with_probs: bool = False) -> DepthPrediction:
+        return self.predict_batch([image], with_probs=with_probs)[0]
+
+    @torch.inference_mode()
+    def raw_outputs(self, image: np.ndarray) -> tuple[torch.Tensor, tuple[int, int]]:
+        """Raw head outputs at model resolution (cropped), for evaluation (modes, sampling)."""
+        x, (fh, fw), (h, w) = self._prepare([image])
+        mc = self.cfg.mc_samples if get_dropout(self.model) else 0
+        return self.model(x, mc_samples=mc)[..., :fh, :fw], (h, w)
+
+
+def get_dropout(model: DepthNet) -> bool:
+    return model.head.dropout

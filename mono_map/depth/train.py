@@ -1,0 +1,321 @@
+"""Training of the depth network on the synthetic training towns (never sequence 00).
+
+Pipeline: a one-off cache of training frames (images resized to the model's input scale and
+LiDAR depth targets min-pooled to it, stored as .npy under data/cache/) -> random crops with the
+paper's augmentations (gamma, brightness, colour shift; Godard et al.) and horizontal flips ->
+Adam with step decay -> checkpoints (resumable) -> a shipped checkpoint without optimizer state.
+Multi-process: launched by ``torchrun`` (env RANK/WORLD_SIZE) or ``torch.multiprocessing``; gloo on
+CPU, nccl on GPU, DistributedDataParallel; rank 0 writes checkpoints.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mono_map.errors import MonoMapError
+
+HELD_OUT = {"00"}
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    root: str | None = None                          # KITTI root (None -> mono_map.paths.data_root)
+    sequences: tuple = ("05", "06", "07", "08", "09", "10")
+    frame_step: int = 4                              # use every n-th frame
+    max_frames: int = 0                              # per sequence, 0 = all
+    target: str = "lidar"                            # "lidar" (velodyne into image_2) or "dense" (depth_2 PNGs)
+    cache_dir: str = "data/cache"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    steps: int = 1500
+    batch_size: int = 8
+    crop: tuple = (128, 416)                         # random crop (H, W) of the resized frames, pixels
+    lr: float = 1e-4                                 # Adam initial learning rate (paper: 1e-4)
+    lr_decay_at: float = 0.75                        # fraction of steps after which lr *= lr_decay (paper: 45/60 epochs)
+    lr_decay: float = 0.1
+    augment: bool = True
+    seed: int = 0
+    threads: int = 2
+    checkpoint_every: int = 250
+    log_every: int = 25
+    work_dir: str = "outputs/train"                  # resumable checkpoints (with optimizer state)
+    output: str = ""                                 # final checkpoint ("" -> <work_dir>/<name>/final.pt)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    name: str
+    model: dict
+    data: DataConfig = field(default_factory=DataConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    source: str = ""
+
+    def model_config(self):
+        from mono_map.depth.networks import named_config
+
+        m = dict(self.model)
+        arch = m.pop("arch", "small")
+        return named_config(arch, **m)
+
+
+def load_run_config(path: str | os.PathLike) -> RunConfig:
+    """Read a TOML or JSON training config: tables [model] (arch + ModelConfig overrides), [data], [train]."""
+    path = Path(path)
+    if not path.is_file():
+        raise MonoMapError(f"{path}: config file not found")
+    try:
+        if path.suffix == ".json":
+            raw = json.loads(path.read_text())
+        else:
+            import tomllib
+
+            raw = tomllib.loads(path.read_text())
+    except Exception as exc:  # noqa: BLE001
+        raise MonoMapError(f"{path}: cannot parse config ({exc})") from None
+    unknown = set(raw) - {"name", "model", "data", "train"}
+    if unknown:
+        raise MonoMapError(f"{path}: unknown sections {sorted(unknown)}")
+
+    def make(cls, d, section):
+        names = set(cls.__dataclass_fields__)
+        bad = set(d) - names
+        if bad:
+            raise MonoMapError(f"{path}: unknown keys in [{section}]: {sorted(bad)}")
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+    cfg = RunConfig(name=str(raw.get("name", path.stem)), model=dict(raw.get("model", {})),
+                    data=make(DataConfig, raw.get("data", {}), "data"),
+                    train=make(TrainConfig, raw.get("train", {}), "train"), source=str(path))
+    validate_run_config(cfg)
+    return cfg
+
+
+def validate_run_config(cfg: RunConfig) -> None:
+    src = cfg.source or "config"
+    held = HELD_OUT & {str(s) for s in cfg.data.sequences}
+    if held:
+        raise MonoMapError(f"{src}: sequence {sorted(held)} is the held-out evaluation sequence; never train on it")
+    if cfg.data.target not in ("lidar", "dense"):
+        raise MonoMapError(f"{src}: data.target must be 'lidar' or 'dense', got {cfg.data.target!r}")
+    if cfg.train.steps < 1 or cfg.train.batch_size < 1:
+        raise MonoMapError(f"{src}: train.steps and train.batch_size must be >= 1")
+    cfg.model_config()  # validates architecture / head
+
+
+# ------------------------------------------------------------------ data cache
+def downsample_depth(depth: np.ndarray, h: int, w: int, sparse: bool = True) -> np.ndarray:
+    """Metres H×W -> h×w. Sparse maps: every valid pixel goes to its low-res pixel, keeping the nearest
+    depth (no interpolation across holes); dense maps: nearest-neighbour resize."""
+    H, W = depth.shape
+    if not sparse:
+        import cv2
+
+        return cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
+    v, u = np.nonzero(depth > 0)
+    z = depth[v, u]
+    uu = np.minimum((u + 0.5) * w / W, w - 1).astype(np.int64)
+    vv = np.minimum((v + 0.5) * h / H, h - 1).astype(np.int64)
+    out = np.full(h * w, np.inf, dtype=np.float32)
+    np.minimum.at(out, vv * w + uu, z.astype(np.float32))
+    out[np.isinf(out)] = 0.0
+    return out.reshape(h, w)
+
+
+def build_cache(cfg: RunConfig, model_cfg) -> tuple[np.ndarray, np.ndarray, Path]:
+    """Load (or build once) the training cache -> images (N,h,w,3) uint8, depths (N,h,w) float16 metres."""
+    import cv2
+
+    from mono_map.data.kitti import open_sequence
+    from mono_map.depth.inference import fit_size
+    from mono_map.paths import data_root
+    from mono_map.progress import progress
+
+    d = cfg.data
+    root = data_root(d.root)
+    key = json.dumps({"root": str(root.resolve()), "seqs": list(d.sequences), "step": d.frame_step,
+                      "max": d.max_frames, "target": d.target,
+                      "size": [model_cfg.input_height, model_cfg.input_width]}, sort_keys=True)
+    tag = hashlib.sha1(key.encode()).hexdigest()[:10]
+    cache_dir = Path(d.cache_dir)
+    img_path, dep_path = cache_dir / f"depth_train_{tag}_images.npy", cache_dir / f"depth_train_{tag}_depths.npy"
+    if img_path.is_file() and dep_path.is_file():
+        return np.load(img_path, mmap_mode="r"), np.load(dep_path, mmap_mode="r"), cache_dir
+    jobs = []
+    for name in d.sequences:
+        seq = open_sequence(root, str(name))
+        idx = list(range(0, len(seq), d.frame_step))
+        if d.max_frames:
+            idx = idx[: d.max_frames]
+        jobs += [(seq, i) for i in idx]
+    if not jobs:
+        raise MonoMapError(f"{cfg.source}: no training frames selected")
+    images, depths = [], []
+    for seq, i in progress(jobs, total=len(jobs), desc="caching training frames", unit="frame"):
+        img = seq.image(i)
+        h, w = fit_size(*img.shape[:2], model_cfg.input_height, model_cfg.input_width)
+        dep = seq.lidar_depth(i) if d.target == "lidar" else seq.depth(i)
+        if dep is None:
+            raise MonoMapError(f"{seq.path}: no dense depth_2 for frame {i} (data.target = 'dense')")
+        images.append(cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA))
+        depths.append(downsample_depth(dep, h, w, sparse=d.target == "lidar").astype(np.float16))
+    from mono_map.io import atomic_path
+
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    for path, arr in ((img_path, np.stack(images)), (dep_path, np.stack(depths))):
+        with atomic_path(path) as tmp:
+            np.save(tmp, arr)
+    return np.load(img_path, mmap_mode="r"), np.load(dep_path, mmap_mode="r"), cache_dir
+
+
+# ------------------------------------------------------------------ batches
+def augment_colour(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Godard et al.'s augmentation on an (h,w,3) float image in [0,1]: gamma 0.8-1.2,
+    brightness 0.5-2.0, per-channel colour shift 0.8-1.2, clipped to [0,1]."""
+    img = img ** rng.uniform(0.8, 1.2)
+    img = img * rng.uniform(0.5, 2.0)
+    img = img * rng.uniform(0.8, 1.2, size=3).astype(np.float32)
+    return np.clip(img, 0.0, 1.0)
+
+
+def sample_batch(images, depths, batch: int, crop: tuple, rng: np.random.Generator, augment: bool):
+    """Random crops (+ 50 % colour augmentation, 50 % horizontal flip) -> (B,3,h,w) float32, (B,h,w) metres."""
+    n, H, W = depths.shape
+    ch, cw = min(crop[0], H), min(crop[1], W)
+    xs = np.empty((batch, 3, ch, cw), np.float32)
+    ys = np.empty((batch, ch, cw), np.float32)
+    for b in range(batch):
+        i = int(rng.integers(n))
+        top, left = int(rng.integers(H - ch + 1)), int(rng.integers(W - cw + 1))
+        img = np.asarray(images[i, top:top + ch, left:left + cw], dtype=np.float32) / 255.0
+        dep = np.asarray(depths[i, top:top + ch, left:left + cw], dtype=np.float32)
+        if augment and rng.random() < 0.5:
+            img = augment_colour(img, rng)
+        if rng.random() < 0.5:
+            img, dep = img[:, ::-1], dep[:, ::-1]
+        xs[b] = img.transpose(2, 0, 1)
+        ys[b] = dep
+    return xs, ys
+
+
+# ------------------------------------------------------------------ distributed
+def dist_env() -> tuple[int, int]:
+    """(rank, world_size) from torchrun's environment (1 process without it)."""
+    return int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1"))
+
+
+def init_distributed(rank: int, world: int, backend: str | None = None) -> None:
+    import torch
+    import torch.distributed as tdist
+
+    if world > 1 and not tdist.is_initialized():
+        backend = backend or ("nccl" if torch.cuda.is_available() else "gloo")
+        os.environ.setdefault("MASTER_ADDR", "127.0.0.1")
+        os.environ.setdefault("MASTER_PORT", "29511")
+        tdist.init_process_group(backend, rank=rank, world_size=world)
+
+
+# ------------------------------------------------------------------ training loop
+def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: int | None = None,
+          device: str | None = None, data: tuple | None = None, log=None) -> dict:
+    """Train per ``cfg``; returns metadata (steps, wall time, final loss, paths).
+
+    ``data`` = (images, depths) skips the cache (tests). With world > 1 the process group must be
+    initialised (``init_distributed``); every rank draws its own batches (seed + rank).
+    """
+    import torch
+    import torch.distributed as tdist
+
+    from mono_map.depth.inference import load_checkpoint, save_checkpoint
+    from mono_map.depth.losses import head_loss
+    from mono_map.depth.networks import DepthNet
+    from mono_map.progress import progress
+
+    env_rank, env_world = dist_env()
+    rank = env_rank if rank is None else rank
+    world = env_world if world is None else world
+    log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
+    t = cfg.train
+    torch.set_num_threads(max(1, t.threads))
+    torch.manual_seed(t.seed)
+    device = device or (f"cuda:{rank % torch.cuda.device_count()}" if torch.cuda.is_available() else "cpu")
+    mcfg = cfg.model_config()
+    model = DepthNet(mcfg).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=t.lr)
+    work = Path(t.work_dir) / cfg.name
+    last = work / "last.pt"
+    start, wall_before = 0, 0.0
+    if resume and last.is_file():
+        m, payload = load_checkpoint(last, device)
+        model.load_state_dict(m.state_dict())
+        if "optimizer" in payload:
+            opt.load_state_dict(payload["optimizer"])
+        start = int(payload["training"].get("step", 0))
+        wall_before = float(payload["training"].get("wall_time_s", 0.0))
+        if rank == 0:
+            log(f"resuming {cfg.name} from {last} at step {start}")
+    images, depths = data if data is not None else build_cache(cfg, mcfg)[:2]
+    if world > 1:
+        model_ddp = torch.nn.parallel.DistributedDataParallel(model, device_ids=None if device == "cpu" else [device])
+    else:
+        model_ddp = model
+    model.train()
+    decay_step = int(math.ceil(t.lr_decay_at * t.steps))
+    t0 = time.time()
+    losses: list[float] = []
+    meta = {}
+    steps = range(start, t.steps)
+    it = progress(steps, total=len(steps), desc=f"train {cfg.name}", unit="step") if rank == 0 else steps
+    for step in it:
+        lr = t.lr * (t.lr_decay if step >= decay_step else 1.0)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        rng = np.random.default_rng([t.seed, rank, step])
+        x, y = sample_batch(images, depths, t.batch_size, t.crop, rng, t.augment)
+        x, y = torch.from_numpy(x).to(device), torch.from_numpy(y).to(device)
+        loss = head_loss(model.head, model_ddp(x), y, mcfg.bins)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if not torch.isfinite(loss):
+            raise MonoMapError(f"{cfg.source}: training diverged at step {step} (loss {loss.item()})")
+        losses.append(loss.item())
+        done = step + 1
+        if rank == 0 and (done % t.log_every == 0 or done == t.steps):
+            el = time.time() - t0
+            eta = el / (done - start) * (t.steps - done)
+            log(f"[{cfg.name}] step {done}/{t.steps} loss {np.mean(losses[-t.log_every:]):.4f} lr {lr:.1e} "
+                f"elapsed {el/60:.1f} min ETA {eta/60:.1f} min")
+        if rank == 0 and (done % t.checkpoint_every == 0 or done == t.steps):
+            meta = _metadata(cfg, done, wall_before + time.time() - t0, losses, world, len(depths))
+            save_checkpoint(last, model, meta, optimizer_state=opt.state_dict())
+    if world > 1:
+        tdist.barrier()
+    meta = _metadata(cfg, t.steps, wall_before + time.time() - t0, losses, world, len(depths))
+    if rank == 0:
+        out = Path(t.output) if t.output else work / "final.pt"
+        save_checkpoint(out, model, meta)
+        meta["output"] = str(out)
+        log(f"[{cfg.name}] wrote {out} ({out.stat().st_size/1e6:.1f} MB), wall time {meta['wall_time_s']/60:.1f} min")
+    return meta
+
+
+def _metadata(cfg: RunConfig, step: int, wall: float, losses: list, world: int, n_frames: int) -> dict:
+    return {
+        "name": cfg.name, "step": step, "wall_time_s": round(wall, 1), "world_size": world,
+        "final_loss": float(np.mean(losses[-50:])) if losses else None,
+        "config_file": cfg.source, "data": {**asdict(cfg.data), "n_frames": int(n_frames)},
+        "train": asdict(cfg.train), "model": dict(cfg.model),
+        "command": f"mono-map train --config {cfg.source}",
+        "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
