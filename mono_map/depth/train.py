@@ -302,6 +302,7 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
     if world > 1:
         tdist.barrier()
     meta = _metadata(cfg, t.steps, wall_before + time.time() - t0, losses, world, len(depths))
+    meta["param_checksum"] = float(sum(p.detach().double().sum().item() for p in model.parameters()))
     if rank == 0:
         out = Path(t.output) if t.output else work / "final.pt"
         save_checkpoint(out, model, meta)

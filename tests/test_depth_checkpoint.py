@@ -1,0 +1,65 @@
+"""Checkpoints: round trip, and clear MonoMapErrors for missing, corrupt or mismatched files."""
+
+import numpy as np
+import pytest
+import torch
+
+from mono_map.depth.inference import DepthPredictor, fit_size, load_checkpoint, save_checkpoint
+from mono_map.depth.networks import DepthNet, named_config
+from mono_map.errors import MonoMapError
+
+TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),
+            num_bins=16, input_height=64, input_width=128)
+
+
+@pytest.fixture
+def ckpt(tmp_path):
+    torch.manual_seed(0)
+    net = DepthNet(named_config("small", **TINY))
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, net, {"step": 3})
+    return path, net
+
+
+def test_round_trip_and_prediction(ckpt):
+    path, net = ckpt
+    model, payload = load_checkpoint(path)
+    assert payload["training"]["step"] == 3
+    for a, b in zip(model.state_dict().values(), net.state_dict().values()):
+        assert torch.equal(a, b)
+    pred = DepthPredictor.load(path)
+    img = (np.random.default_rng(0).random((75, 250, 3)) * 255).astype(np.uint8)
+    p = pred.predict(img, with_probs=True)
+    assert p.depth.shape == (75, 250) and p.probs.shape == (16, 75, 250)
+    assert p.depth.dtype == np.float32 and np.all(p.depth >= 1.0) and np.all(p.depth <= 80.0)
+    np.testing.assert_allclose(p.probs.sum(0), 1.0, rtol=1e-4)
+    batch = pred.predict_batch([img, img])
+    np.testing.assert_allclose(batch[0].depth, p.depth, rtol=1e-4)
+    assert fit_size(376, 1241, 192, 640) == (192, 634)
+
+
+def test_missing_and_corrupt(tmp_path, ckpt):
+    with pytest.raises(MonoMapError, match="not found"):
+        load_checkpoint(tmp_path / "nope.pt")
+    bad = tmp_path / "corrupt.pt"
+    bad.write_bytes(ckpt[0].read_bytes()[:5000])
+    with pytest.raises(MonoMapError, match="corrupt.pt"):
+        DepthPredictor.load(bad)
+    junk = tmp_path / "junk.pt"
+    torch.save({"hello": 1}, junk)
+    with pytest.raises(MonoMapError, match="junk.pt.*format"):
+        load_checkpoint(junk)
+
+
+def test_mismatched_weights_and_bins(tmp_path, ckpt):
+    path, net = ckpt
+    payload = torch.load(path, weights_only=True)
+    payload["model_config"]["head"] = "gaussian"  # head with 2 output maps, weights have 16
+    torch.save(payload, tmp_path / "wrong_head.pt")
+    with pytest.raises(MonoMapError, match="wrong_head.pt.*do not match"):
+        load_checkpoint(tmp_path / "wrong_head.pt")
+    payload = torch.load(path, weights_only=True)
+    payload["bins"]["max_depth"] = 100.0
+    torch.save(payload, tmp_path / "wrong_bins.pt")
+    with pytest.raises(MonoMapError, match="wrong_bins.pt.*bins"):
+        load_checkpoint(tmp_path / "wrong_bins.pt")

@@ -1,0 +1,111 @@
+"""Training loop: config validation, resume, distributed data parallel with 2 CPU processes."""
+
+import socket
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+
+from mono_map.depth.inference import DepthPredictor, load_checkpoint
+from mono_map.depth.train import (DataConfig, RunConfig, TrainConfig, downsample_depth, init_distributed,
+                                  load_run_config, sample_batch, train)
+from mono_map.errors import MonoMapError
+
+TINY = dict(arch="small", head="binary", widths=[8, 8, 8, 8], stem_width=8, spp_width=4,
+            decoder_widths=[8, 8, 8], num_bins=16, input_height=64, input_width=128)
+
+
+def _data(n=4, h=64, w=128):
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 255, (n, h, w, 3), dtype=np.uint8)
+    depths = np.where(rng.random((n, h, w)) < 0.3, rng.uniform(2, 60, (n, h, w)), 0).astype(np.float16)
+    return images, depths
+
+
+def _cfg(tmp_path, steps=4, **train_kw):
+    t = TrainConfig(steps=steps, batch_size=2, crop=(32, 64), lr=1e-3, threads=1, checkpoint_every=2,
+                    log_every=2, work_dir=str(tmp_path / "work"), output=str(tmp_path / "out.pt"), **train_kw)
+    return RunConfig(name="tiny", model=dict(TINY), data=DataConfig(), train=t, source="test")
+
+
+def test_shipped_configs_parse_and_exclude_sequence_00():
+    root = Path(__file__).resolve().parents[1] / "mono_map" / "depth" / "configs"
+    files = sorted(root.glob("*.toml"))
+    assert {"binary.toml", "softmax.toml", "gaussian.toml"} <= {f.name for f in files}
+    for f in files:
+        cfg = load_run_config(f)
+        assert "00" not in cfg.data.sequences
+        assert cfg.model_config().head == cfg.model["head"]
+
+
+def test_config_refuses_sequence_00_and_unknown_keys(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[model]\nhead = "binary"\n[data]\nsequences = ["05", "00"]\n')
+    with pytest.raises(MonoMapError, match="held-out"):
+        load_run_config(bad)
+    bad.write_text('[train]\nstepz = 3\n')
+    with pytest.raises(MonoMapError, match="stepz"):
+        load_run_config(bad)
+    bad.write_text('[model]\nhead = "nope"\n')
+    with pytest.raises(MonoMapError, match="nope"):
+        load_run_config(bad)
+
+
+def test_sparse_downsample_keeps_nearest_point():
+    d = np.zeros((4, 4), np.float32)
+    d[0, 0], d[0, 1], d[3, 3] = 10.0, 7.0, 5.0
+    out = downsample_depth(d, 2, 2)
+    assert out[0, 0] == 7.0 and out[1, 1] == 5.0 and out[0, 1] == 0.0 and out[1, 0] == 0.0
+
+
+def test_batches_are_seeded_and_augmented_in_range():
+    images, depths = _data()
+    a = sample_batch(images, depths, 3, (32, 64), np.random.default_rng([0, 0, 5]), True)
+    b = sample_batch(images, depths, 3, (32, 64), np.random.default_rng([0, 0, 5]), True)
+    np.testing.assert_array_equal(a[0], b[0])
+    assert a[0].shape == (3, 3, 32, 64) and a[0].min() >= 0 and a[0].max() <= 1
+
+
+def test_train_checkpoint_and_resume(tmp_path):
+    images, depths = _data()
+    meta = train(_cfg(tmp_path, steps=4), resume=False, data=(images, depths), log=lambda m: None)
+    assert meta["step"] == 4 and Path(meta["output"]).is_file()
+    _, payload = load_checkpoint(tmp_path / "work" / "tiny" / "last.pt")
+    assert payload["training"]["step"] == 4 and "optimizer" in payload
+    logs = []
+    meta = train(_cfg(tmp_path, steps=6), resume=True, data=(images, depths), log=logs.append)
+    assert any("resuming" in m and "step 4" in m for m in logs)
+    assert meta["step"] == 6
+    pred = DepthPredictor.load(tmp_path / "out.pt")
+    p = pred.predict(np.zeros((50, 100, 3), np.uint8))
+    assert p.depth.shape == (50, 100) and p.entropy.shape == (50, 100)
+
+
+def _ddp_worker(rank, world, port, tmp, q):
+    import os
+
+    os.environ["MASTER_ADDR"], os.environ["MASTER_PORT"] = "127.0.0.1", str(port)
+    init_distributed(rank, world, "gloo")
+    images, depths = _data()
+    cfg = _cfg(Path(tmp), steps=3)
+    meta = train(cfg, resume=False, rank=rank, world=world, device="cpu", data=(images, depths), log=lambda m: None)
+    # ranks draw different batches; DDP averages gradients, so the replicas stay identical
+    q.put((rank, meta["param_checksum"]))
+    torch.distributed.destroy_process_group()
+
+
+def test_ddp_two_cpu_processes(tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ctx = mp.get_context("spawn")
+    q = ctx.SimpleQueue()
+    mp.start_processes(_ddp_worker, args=(2, port, str(tmp_path), q), nprocs=2, join=True, start_method="spawn")
+    results = dict(q.get() for _ in range(2))
+    assert set(results) == {0, 1}
+    assert (tmp_path / "out.pt").is_file()
+    assert np.isfinite(results[0])
+    assert results[0] == pytest.approx(results[1], rel=1e-9, abs=1e-9)
