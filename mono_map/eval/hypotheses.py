@@ -1,8 +1,7 @@
 """Oracle multi-hypothesis evaluation (paper Sec. IV-B, Fig. 6 / Table III).
 
 Each pixel gets M depth hypotheses (the M most probable modes of its distribution); an oracle
-keeps, per pixel, the hypothesis closest to the ground truth (smallest |log d - log gt|, i.e. the
-smallest relative error), and the standard metrics are computed on the kept depths.
+keeps, per pixel, the hypothesis with the smallest absolute relative error |d - gt| / gt, and the standard metrics are computed on the kept depths.
 """
 
 from __future__ import annotations
@@ -15,7 +14,7 @@ from mono_map.eval.depth_metrics import depth_errors
 def oracle_select(gt: np.ndarray, hypotheses: np.ndarray) -> np.ndarray:
     """gt (N,) metres, hypotheses (M, N) metres -> (N,) the per-pixel best hypothesis."""
     h = np.asarray(hypotheses, np.float64)
-    best = np.abs(np.log(h) - np.log(np.asarray(gt, np.float64))[None]).argmin(0)
+    best = np.abs(h - np.asarray(gt, np.float64)[None]).argmin(0)
     return np.take_along_axis(h, best[None], 0)[0]
 
 

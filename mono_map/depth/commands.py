@@ -1,0 +1,216 @@
+"""Subcommands: ``train``, ``predict``, ``eval-depth`` (heavy imports inside the functions)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+SHIPPED_HEADS = ("binary", "softmax", "gaussian", "ordinal")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "train", help="train a depth network on the synthetic training towns (never sequence 00)",
+        description="Train per a TOML/JSON config (mono_map/depth/configs/*.toml). Resumes from "
+                    "<work_dir>/<name>/last.pt. Multi-process: torchrun --nproc_per_node N -m mono_map train --config F.")
+    p.add_argument("--config", required=True, help="training config (.toml or .json)")
+    p.add_argument("--data-root", default=None, help="KITTI root (default: $MONO_MAP_DATA or ./data/kitti)")
+    p.add_argument("--steps", type=int, default=None, help="override train.steps")
+    p.add_argument("--output", default=None, help="override train.output (final checkpoint path)")
+    p.add_argument("--no-resume", action="store_true", help="start from scratch even if a checkpoint exists")
+    p.set_defaults(func=run_train)
+
+    p = subparsers.add_parser("predict", help="predict depth + entropy for a sequence or an image folder")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--seq", help="sequence name under the data root (e.g. 00)")
+    src.add_argument("--images", help="folder of .png/.jpg images")
+    p.add_argument("--data-root", default=None)
+    p.add_argument("--frames", default=None, help="frame selection start:stop[:step] or a comma list (sequences)")
+    p.add_argument("--model", default=None, help="checkpoint path or shipped head name (default: binary)")
+    p.add_argument("--out", default="outputs/predict", help="output folder")
+    p.add_argument("--npz", action="store_true", help="also save the K×h×w distributions (float16, model resolution)")
+    p.add_argument("--space", choices=("log", "linear"), default="log", help="expectation space")
+    p.set_defaults(func=run_predict)
+
+    p = subparsers.add_parser("eval-depth", help="depth metrics, uncertainty AUCs, oracle hypotheses of the heads")
+    p.add_argument("--seq", default="00", help="evaluation sequence (default 00, the held-out town)")
+    p.add_argument("--data-root", default=None)
+    p.add_argument("--frames", default="0:500:10", help="start:stop[:step] or comma list (default 0:500:10)")
+    p.add_argument("--model", action="append", default=None,
+                   help="checkpoint path or shipped head name; repeat for several (default: all shipped)")
+    p.add_argument("--gt", choices=("lidar", "dense"), default="lidar", help="ground truth: projected LiDAR or dense depth_2")
+    p.add_argument("--kitti-object", default=None, help="evaluate on a real KITTI object 'training' folder instead")
+    p.add_argument("--cap", type=float, default=80.0, help="maximum ground-truth depth (m)")
+    p.add_argument("--garg-crop", action="store_true", help="evaluate inside Garg's crop only")
+    p.add_argument("--out", default="outputs/eval_depth", help="output folder (JSON, Markdown, PNG)")
+    p.set_defaults(func=run_eval_depth)
+
+
+def parse_frames(spec: str | None, n: int, option: str = "--frames") -> list[int]:
+    """'a:b[:c]' (Python slice) or '1,5,9' -> frame indices within [0, n)."""
+    from mono_map.errors import MonoMapError
+
+    if not spec:
+        return list(range(n))
+    try:
+        if ":" in spec:
+            parts = [int(x) if x else None for x in spec.split(":")]
+            idx = list(range(n))[slice(*parts)]
+        else:
+            idx = [int(x) for x in spec.split(",")]
+    except ValueError:
+        raise MonoMapError(f"{option}: cannot parse {spec!r} (use start:stop[:step] or a comma list)") from None
+    bad = [i for i in idx if not 0 <= i < n]
+    if bad or not idx:
+        raise MonoMapError(f"{option}: frames {bad[:5] or spec} outside the sequence's 0..{n - 1}")
+    return idx
+
+
+def _frame_stop(spec: str | None) -> int | None:
+    if spec and ":" in spec:
+        parts = spec.split(":")
+        return int(parts[1]) if len(parts) > 1 and parts[1] else None
+    if spec:
+        return max(int(x) for x in spec.split(",")) + 1
+    return None
+
+
+def run_train(args) -> int:
+    from dataclasses import replace
+
+    from mono_map.depth.train import dist_env, init_distributed, load_run_config, train
+
+    cfg = load_run_config(args.config)
+    t = cfg.train
+    if args.steps:
+        t = replace(t, steps=args.steps)
+    if args.output:
+        t = replace(t, output=args.output)
+    data = cfg.data if args.data_root is None else replace(cfg.data, root=args.data_root)
+    cfg = replace(cfg, train=t, data=data)
+    rank, world = dist_env()
+    init_distributed(rank, world)
+    train(cfg, resume=not args.no_resume)
+    return 0
+
+
+def colourise(values, vmin: float, vmax: float, cmap: str = "magma"):
+    """H×W float -> H×W×3 uint8 RGB (matplotlib colour map)."""
+    import numpy as np
+    from matplotlib import colormaps
+
+    x = np.clip((np.asarray(values, np.float64) - vmin) / max(vmax - vmin, 1e-9), 0, 1)
+    return (colormaps[cmap](x)[..., :3] * 255).astype(np.uint8)
+
+
+def run_predict(args) -> int:
+    import cv2
+    import numpy as np
+
+    from mono_map.data.depth_png import write_depth_png
+    from mono_map.depth.inference import DepthPredictor
+    from mono_map.errors import MonoMapError
+    from mono_map.io import atomic_path
+    from mono_map.progress import progress
+
+    pred = DepthPredictor.load(args.model, space=args.space)
+    out = Path(args.out)
+    if args.seq:
+        from mono_map.data.kitti import open_sequence
+
+        seq = open_sequence(args.data_root, args.seq, frames=_frame_stop(args.frames))
+        idx = parse_frames(args.frames, len(seq))
+        items = [(f"{i:06d}", (lambda i=i: seq.image(i))) for i in idx]
+    else:
+        from mono_map.data.kitti import read_image_rgb
+
+        folder = Path(args.images)
+        files = sorted(p for p in folder.glob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+        if not files:
+            raise MonoMapError(f"{folder}: no .png/.jpg images")
+        items = [(p.stem, (lambda p=p: read_image_rgb(p))) for p in files]
+    logk = float(np.log(pred.bins.num_bins))
+    for sub in ("depth", "entropy", "vis"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    for name, load in progress(items, total=len(items), desc="predict", unit="frame"):
+        img = load()
+        p = pred.predict(img)
+        write_depth_png(out / "depth" / f"{name}.png", p.depth)
+        with atomic_path(out / "entropy" / f"{name}.png") as tmp:  # uint16, nats × 10000
+            cv2.imwrite(str(tmp), np.clip(np.round(p.entropy * 10000), 0, 65535).astype(np.uint16))
+        vis = np.concatenate([img, colourise(1.0 / p.depth, 1.0 / pred.bins.max_depth, 1.0 / 3.0, "magma"),
+                              colourise(p.entropy, 0.0, logk if pred.cfg.head != "gaussian" else 2.0, "viridis")], 0)
+        with atomic_path(out / "vis" / f"{name}.jpg") as tmp:
+            cv2.imwrite(str(tmp), cv2.cvtColor(vis, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])
+        if args.npz:
+            import torch
+
+            from mono_map.depth.losses import decode
+
+            raw, _ = pred.raw_outputs(img)
+            probs = decode(pred.head, raw, pred.bins, with_probs=True)["probs"]
+            with atomic_path(out / "npz" / f"{name}.npz") as tmp:
+                np.savez_compressed(tmp, probs=None if probs is None else probs[0].numpy().astype(np.float16),
+                                    bin_centres=pred.bins.centres, depth=p.depth, entropy=p.entropy)
+    print(f"wrote {len(items)} predictions to {out}/(depth|entropy|vis{'|npz' if args.npz else ''})")
+    return 0
+
+
+def _models(args) -> list[str]:
+    from mono_map.depth.inference import default_checkpoint
+    from mono_map.errors import MonoMapError
+
+    if args.model:
+        return args.model
+    found = [h for h in SHIPPED_HEADS if default_checkpoint(h).is_file()]
+    if not found:
+        raise MonoMapError(f"{default_checkpoint('binary').parent}: no shipped checkpoints; pass --model")
+    return found
+
+
+def run_eval_depth(args) -> int:
+    import torch
+
+    from mono_map.depth.evaluate import evaluate_model, markdown_report, object_frames, plot_curves, plot_hypotheses
+    from mono_map.depth.inference import DepthPredictor
+    from mono_map.errors import MonoMapError
+    from mono_map.io import write_json_atomic, write_text_atomic
+
+    torch.set_num_threads(2)
+    predictors = {}
+    for m in _models(args):
+        p = DepthPredictor.load(m)
+        key = p.head if p.head not in predictors else f"{p.head} ({m})"
+        predictors[key] = p
+    if args.kitti_object:
+        frames = object_frames(args.kitti_object)
+        make = lambda: iter(frames)  # noqa: E731
+        n, title, where = len(frames), f"Depth evaluation on real KITTI object frames ({args.kitti_object})", "object"
+    else:
+        from mono_map.data.kitti import open_sequence
+
+        seq = open_sequence(args.data_root, args.seq, frames=_frame_stop(args.frames))
+        idx = parse_frames(args.frames, len(seq))
+
+        def make():
+            for i in idx:
+                gt = seq.lidar_depth(i) if args.gt == "lidar" else seq.depth(i)
+                if gt is None:
+                    raise MonoMapError(f"{seq.path}: no dense depth_2 for frame {i} (--gt dense)")
+                yield f"{i:06d}", seq.image(i), gt
+
+        n, where = len(idx), f"seq{args.seq}"
+        title = (f"Depth evaluation on sequence {args.seq} (frames {args.frames}, ground truth: {args.gt}"
+                 f"{', Garg crop' if args.garg_crop else ''}, cap {args.cap:g} m)")
+    results = {h: evaluate_model(p, make(), n, cap=args.cap, garg_crop=args.garg_crop, desc=f"eval {h}")
+               for h, p in predictors.items()}
+    out = Path(args.out)
+    write_json_atomic(out / f"depth_{where}.json", {"title": title, "args": {k: v for k, v in vars(args).items()
+                                                                              if k != "func"}, "results": results})
+    md = markdown_report(results, title)
+    write_text_atomic(out / f"depth_{where}.md", md)
+    plot_curves(results, out / f"sparsification_{where}.png")
+    plot_hypotheses(results, out / f"hypotheses_{where}.png")
+    print(md)
+    print(f"wrote {out}/depth_{where}.(json|md), sparsification_{where}.png, hypotheses_{where}.png")
+    return 0
