@@ -1,0 +1,524 @@
+"""Stream a growing OctoMap build to rerun: live viewer (``spawn``) and/or a recording (``.rrd``).
+
+``RerunMapLogger`` is a ``build_map`` observer: call it with each ``FrameUpdate`` (see
+``mono_map.mapping.build``), then ``close()``. It only reads the update's attributes, so any
+object with the same fields works.
+
+What is logged (entity paths; all temporal data on the ``frame`` sequence timeline and on a
+``time`` duration timeline taken from the sequence timestamps, seconds):
+
+==============================  ============================================================
+``world``                       static ``ViewCoordinates.RDF`` (KITTI cam0 world: x right,
+                                y DOWN, z forward; height = -y)
+``world/camera``                ``Transform3D`` T_world_cam2 + ``Pinhole`` (image_2's K, W×H)
+``world/camera/image``          image_2, JPEG (shown in the 3-D frustum and in 2-D)
+``frame/depth``                 predicted expected depth, ``EncodedDepthImage`` (16-bit PNG,
+                                millimetres), colour-mapped by the viewer (Turbo, 1-80 m)
+``frame/entropy``               per-pixel entropy (nats), colour-mapped (magma) over
+                                [0, ``entropy_max``], JPEG
+``frame/kept_mask``             kept pixels (white) vs dropped (black), PNG
+``world/points``                this frame's inserted end points (subsampled to ``max_points``)
+``world/trajectory/seg_NNNN``   camera path so far, in segments of ``trajectory_block`` frames
+``world/map/occupied/bX_Y_Z``   occupied cells of spatial block (X, Y, Z), see below
+``world/reference_map``         static: occupied cells of ``reference_map`` (.bt), if given
+``stats/<name>``                ``Scalars``: frames_per_s, memory_mb, leaf_count,
+                                mean_entropy, kept_fraction, n_points, map_cells
+==============================  ============================================================
+
+The map is sent incrementally, per spatial block
+-----------------------------------------------
+Space is cut into cubic blocks of ``block_cells`` cells per side (32 × 0.2 m = 6.4 m by
+default). The logger keeps, for every block, the sorted set of its occupied cells (8 bytes per
+cell). A frame's ``occupied_keys_changed`` are added to their blocks and its
+``freed_keys_changed`` removed; only the blocks this touched are re-logged, each as one entity
+``world/map/occupied/b<X>_<Y>_<Z>`` holding exactly that block's current occupied cells
+(an emptied block gets a ``Clear``). Why this shape:
+
+* **Viewer correctness**: rerun shows the latest value of each entity at the selected time, so
+  at any frame, also when scrubbing back, the union of the blocks is exactly the map after that
+  frame (including cells that were freed again): no tombstones, no drift.
+* **Memory / size**: nothing is re-sent for blocks the frame did not touch, so the recording
+  grows with the area the camera currently sees, not with the whole map; entity count grows with
+  the mapped area (not with the number of frames, unlike per-frame addition chunks, which would
+  also need a re-log of every older chunk that lost a cell). ``map_every=N`` batches the dirty
+  blocks of N frames into one re-log to shrink long recordings further (``close()`` flushes).
+
+Cells are drawn as ``VoxelGridMap`` voxels (``cells="voxels"``: int32 grid indices + height
+value, colour-mapped by the viewer with Turbo over ``height_range``: the paper's "colour encodes
+normalised height"), or as ``Points3D``/``Boxes3D`` with colours computed here.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mono_map.errors import MonoMapError
+
+APP_ID = "mono-map"
+# Bits per axis when packing integer cell indices into one int64 (indices within ±2^20 cells).
+_BITS = 21
+_OFF = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+DEFAULT_HEIGHT_RANGE = (-2.5, 4.0)   # metres above cam0 (KITTI: ground ≈ -1.65 m, shown blue)
+STAT_NAMES = ("frames_per_s", "memory_mb", "leaf_count", "mean_entropy", "kept_fraction", "n_points")
+IMAGE_VIEWS = ("world/camera/image", "frame/depth", "frame/entropy", "frame/kept_mask")
+CELL_STYLES = ("voxels", "points", "boxes")
+
+
+# --------------------------------------------------------------------------- pure helpers
+
+
+def cell_indices(centres: np.ndarray, resolution: float) -> np.ndarray:
+    """World cell centres (N,3) metres → integer cell indices (N,3) int64, centre = (i+0.5)·res."""
+    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    return np.floor(c / resolution).astype(np.int64)
+
+
+def pack(idx: np.ndarray) -> np.ndarray:
+    """Integer cell indices (N,3) → one sortable int64 key each."""
+    i = np.asarray(idx, dtype=np.int64) + _OFF
+    if i.size and (i.min() < 0 or i.max() > _MASK):
+        raise MonoMapError("map cells: index outside the ±2^20 cell range the viewer supports")
+    return (i[:, 0] << (2 * _BITS)) | (i[:, 1] << _BITS) | i[:, 2]
+
+
+def unpack(keys: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`pack`: int64 keys (N,) → integer indices (N,3) int64."""
+    k = np.asarray(keys, dtype=np.int64)
+    return np.stack([(k >> (2 * _BITS)) & _MASK, (k >> _BITS) & _MASK, k & _MASK], axis=1) - _OFF
+
+
+def heights(idx: np.ndarray, resolution: float) -> np.ndarray:
+    """Height above the cam0 origin (metres) of cell centres: world y points down, so height = -y."""
+    return (-(np.asarray(idx)[:, 1].astype(np.float64) + 0.5) * resolution).astype(np.float32)
+
+
+def colormap_lut(name: str = "turbo") -> np.ndarray:
+    """256×3 uint8 lookup table of a matplotlib colormap."""
+    from matplotlib import colormaps
+
+    return (colormaps[name](np.linspace(0.0, 1.0, 256))[:, :3] * 255 + 0.5).astype(np.uint8)
+
+
+def apply_lut(values: np.ndarray, lo: float, hi: float, lut: np.ndarray) -> np.ndarray:
+    """Map values to colours: clip to [lo, hi], normalise, look up (…×3 uint8)."""
+    t = (np.nan_to_num(np.asarray(values, dtype=np.float32), nan=lo) - lo) / max(hi - lo, 1e-9)
+    return lut[np.clip((t * 255).astype(np.int32), 0, 255)]
+
+
+def occupied_cells_from_bt(path: str | Path) -> tuple[np.ndarray, float]:
+    """Read an OctoMap ``.bt`` → (occupied cell centres (N,3) metres at finest resolution, resolution).
+
+    Pruned (merged) occupied nodes are expanded into their finest-level cells.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MonoMapError(f"{path}: no such map file")
+    import octomap
+
+    tree = octomap.OcTree(0.1)
+    ok = tree.readBinary(str(path).encode())
+    if not ok:
+        raise MonoMapError(f"{path}: not a readable OctoMap binary (.bt) file")
+    res = float(tree.getResolution())
+    centres, sizes = [], []
+    for leaf in tree.begin_leafs():
+        if tree.isNodeOccupied(leaf):
+            centres.append(leaf.getCoordinate())
+            sizes.append(leaf.getSize())
+    if not centres:
+        return np.zeros((0, 3)), res
+    centres = np.asarray(centres, dtype=np.float64)
+    sizes = np.asarray(sizes, dtype=np.float64)
+    out = [centres[sizes <= res * 1.5]]
+    for c, s in zip(centres[sizes > res * 1.5], sizes[sizes > res * 1.5]):
+        n = int(round(s / res))
+        g = (np.arange(n) + 0.5) * res - s / 2
+        out.append(c + np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3))
+    return np.concatenate(out), res
+
+
+def height_range_of(idx: np.ndarray, resolution: float, q=(2.0, 98.0), pad_low: float = 0.12
+                    ) -> tuple[float, float]:
+    """Robust height range (metres) of cells for colour normalisation.
+
+    Percentiles ``q`` of the cell heights; the low end is lowered by ``pad_low`` of the span so the
+    ground maps to Turbo's blue rather than its near-black bottom.
+    """
+    if len(idx) == 0:
+        return DEFAULT_HEIGHT_RANGE
+    lo, hi = (float(v) for v in np.percentile(heights(idx, resolution), q))
+    hi = max(hi, lo + resolution)
+    return lo - pad_low * (hi - lo), hi
+
+
+def cells_archetype(idx: np.ndarray, resolution: float, style: str = "voxels",
+                    height_range: tuple[float, float] = DEFAULT_HEIGHT_RANGE, lut: np.ndarray | None = None):
+    """rerun archetype drawing cells (integer indices (N,3)) coloured by height = -y (metres).
+
+    "voxels": ``VoxelGridMap`` (height values, Turbo colour-mapped by the viewer over height_range);
+    "points": ``Points3D`` of radius res/2; "boxes": solid ``Boxes3D`` (colours computed here).
+    """
+    import rerun as rr
+
+    lo, hi = height_range
+    if style == "voxels":
+        return rr.VoxelGridMap(
+            idx.astype(np.int32), voxel_size=[resolution] * 3, values=heights(idx, resolution),
+            value_range=[lo, hi], colormap=rr.components.Colormap.Turbo)
+    centres = ((idx.astype(np.float64) + 0.5) * resolution).astype(np.float32)
+    colours = apply_lut(heights(idx, resolution), lo, hi, lut if lut is not None else colormap_lut("turbo"))
+    if style == "points":
+        return rr.Points3D(centres, colors=colours, radii=resolution / 2)
+    return rr.Boxes3D(centers=centres, half_sizes=[resolution / 2] * 3, colors=colours,
+                      fill_mode=rr.components.FillMode.Solid)
+
+
+# --------------------------------------------------------------------------- image encoding
+
+
+def _encode(ext: str, img: np.ndarray, params: list[int]) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(ext, img, params)
+    if not ok:  # pragma: no cover - cv2 failure
+        raise MonoMapError(f"viewer: could not encode a {ext} image")
+    return buf.tobytes()
+
+
+def encode_jpeg_rgb(rgb: np.ndarray, quality: int = 85) -> bytes:
+    import cv2
+
+    return _encode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
+
+
+def encode_png(gray_or_u16: np.ndarray) -> bytes:
+    import cv2
+
+    return _encode(".png", np.ascontiguousarray(gray_or_u16), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+
+
+# --------------------------------------------------------------------------- the logger
+
+
+class RerunMapLogger:
+    """Observer that streams each ``FrameUpdate`` of a map build to rerun (see module doc).
+
+    Parameters (units: metres, seconds):
+      rrd: write a recording to this file (atomically on ``close()``); spawn: start a viewer and
+      stream to it live (both may be given); reference_map: a ``.bt`` (e.g. the LiDAR-FOV map)
+      logged once, static, in its own 3-D view; resolution: map cell size (must match the build);
+      block_cells: spatial block edge in cells; map_every: re-log dirty blocks every N frames;
+      cells: "voxels" | "points" | "boxes"; height_range: (lo, hi) heights for the colour scale
+      (None: from the reference map if given, else DEFAULT_HEIGHT_RANGE); max_points: cap on this
+      frame's logged end points; trajectory_block: frames per trajectory segment entity;
+      entropy_max: top of the entropy colour scale (nats; default ln 64, the 64-bin maximum);
+      jpeg_quality: of image_2 and the entropy picture.
+    """
+
+    def __init__(
+        self,
+        rrd: str | Path | None = None,
+        spawn: bool = False,
+        reference_map: str | Path | None = None,
+        resolution: float = 0.2,
+        *,
+        block_cells: int = 32,
+        map_every: int = 1,
+        cells: str = "voxels",
+        height_range: tuple[float, float] | None = None,
+        max_points: int = 20000,
+        trajectory_block: int = 100,
+        entropy_max: float = math.log(64),
+        jpeg_quality: int = 85,
+        recording_name: str | None = None,
+        blueprint: bool = True,
+    ) -> None:
+        import rerun as rr
+
+        if rrd is None and not spawn:
+            raise MonoMapError("viewer: give --rrd FILE and/or --viewer")
+        if cells not in CELL_STYLES:
+            raise MonoMapError(f"cells: {cells!r} is not one of {', '.join(CELL_STYLES)}")
+        if not resolution > 0:
+            raise MonoMapError(f"resolution: must be > 0 (got {resolution})")
+        if block_cells < 1 or map_every < 1 or trajectory_block < 2:
+            raise MonoMapError("viewer: block_cells and map_every must be ≥ 1, trajectory_block ≥ 2")
+        self.rr = rr
+        self.resolution = float(resolution)
+        self.block_cells = int(block_cells)
+        self.map_every = int(map_every)
+        self.cells = cells
+        self.max_points = int(max_points)
+        self.trajectory_block = int(trajectory_block)
+        self.entropy_max = float(entropy_max)
+        self.jpeg_quality = int(jpeg_quality)
+        self.rrd = Path(rrd) if rrd is not None else None
+
+        ref_idx = None
+        if reference_map is not None:
+            ref_centres, ref_res = occupied_cells_from_bt(reference_map)
+            ref_idx = cell_indices(ref_centres, ref_res)
+            self._ref_res = ref_res
+        self.height_range = tuple(height_range) if height_range is not None else (
+            height_range_of(ref_idx, self._ref_res) if ref_idx is not None else DEFAULT_HEIGHT_RANGE)
+        self._turbo = colormap_lut("turbo")
+        self._magma = colormap_lut("magma")
+
+        self.rec = rr.RecordingStream(APP_ID, recording_id=None)
+        if recording_name:
+            self.rec.send_recording_name(recording_name)
+        bp = None
+        if blueprint:
+            from mono_map.viz.blueprint import default_blueprint
+
+            bp = default_blueprint(reference=reference_map is not None)
+        sinks = []
+        self._tmp_rrd = None
+        if self.rrd is not None:
+            self.rrd.parent.mkdir(parents=True, exist_ok=True)
+            # Written beside the target and renamed on close(): the .rrd appears whole or not at all.
+            self._tmp_rrd = self.rrd.with_name(f".{self.rrd.name}.tmp")
+            sinks.append(rr.FileSink(str(self._tmp_rrd)))
+        if spawn:
+            rr.spawn(connect=False, hide_welcome_screen=True)
+            sinks.append(rr.GrpcSink())
+        self.rec.set_sinks(*sinks, default_blueprint=bp)
+
+        self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        for name in STAT_NAMES + ("map_cells",):
+            self.rec.log(f"stats/{name}", rr.SeriesLines(names=name), static=True)
+        if ref_idx is not None:
+            self.rec.log("world/reference_map", self._cells_archetype(ref_idx, self._ref_res), static=True)
+            self.reference_cells = len(ref_idx)
+        else:
+            self.reference_cells = 0
+
+        self._blocks: dict[int, np.ndarray] = {}   # packed block index → sorted packed cell indices
+        self.blocks_logged = 0      # block re-logs so far (size accounting for the benchmark)
+        self.cells_logged = 0       # cells sent so far, re-sends included
+        self.block_entities: set[int] = set()
+        self._pending_add: list[np.ndarray] = []
+        self._pending_rem: list[np.ndarray] = []
+        self._traj_seg: list[np.ndarray] = []
+        self._traj_n = 0
+        self._pinhole_logged = None
+        self.frames = 0
+        self.map_cells = 0
+        self._closed = False
+
+    def _cells_archetype(self, idx: np.ndarray, resolution: float):
+        return cells_archetype(idx, resolution, self.cells, self.height_range, self._turbo)
+
+    # ----------------------------------------------------------------- per frame
+
+    def __call__(self, update: Any) -> None:
+        if self._closed:
+            raise MonoMapError("viewer: logger already closed")
+        rr, rec = self.rr, self.rec
+        rec.set_time("frame", sequence=int(update.index))
+        rec.set_time("time", duration=float(update.time))
+
+        self._log_camera(update)
+        self._log_images(update)
+        self._log_points(update)
+        self._log_trajectory(update)
+
+        self._pending_add.append(pack(cell_indices(update.occupied_keys_changed, self.resolution)))
+        self._pending_rem.append(pack(cell_indices(update.freed_keys_changed, self.resolution)))
+        self.frames += 1
+        if self.frames % self.map_every == 0:
+            self._flush_map()
+
+        stats = dict(getattr(update, "stats", {}) or {})
+        for name in STAT_NAMES:
+            v = stats.get(name)
+            if v is not None and np.isfinite(v):
+                rec.log(f"stats/{name}", rr.Scalars(float(v)))
+        rec.log("stats/map_cells", rr.Scalars(float(self.map_cells)))
+
+    def _log_camera(self, u: Any) -> None:
+        rr = self.rr
+        T = np.asarray(u.T_world_cam2, dtype=np.float64)
+        self.rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        K = np.asarray(u.K, dtype=np.float64)
+        hw = u.image.shape[:2] if u.image is not None else (
+            u.depth.shape if u.depth is not None else (int(round(2 * K[1, 2])), int(round(2 * K[0, 2]))))
+        key = (K.tobytes(), tuple(hw))
+        if key != self._pinhole_logged:  # intrinsics are constant: log once (re-log if they change)
+            self.rec.log("world/camera", rr.Pinhole(image_from_camera=K, resolution=[hw[1], hw[0]],
+                                                     camera_xyz=rr.ViewCoordinates.RDF,
+                                                     image_plane_distance=2.0))
+            self._pinhole_logged = key
+
+    def _log_images(self, u: Any) -> None:
+        rr, rec = self.rr, self.rec
+        if u.image is not None:
+            rec.log("world/camera/image", rr.EncodedImage(
+                contents=encode_jpeg_rgb(np.asarray(u.image, dtype=np.uint8), self.jpeg_quality),
+                media_type="image/jpeg"))
+        if u.depth is not None:
+            d = np.nan_to_num(np.asarray(u.depth, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+            mm = np.clip(d * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
+            rec.log("frame/depth", rr.EncodedDepthImage(
+                encode_png(mm), media_type="image/png", meter=1000.0,
+                colormap=rr.components.Colormap.Turbo, depth_range=[1000.0, 80000.0]))  # raw units (mm)
+        if u.entropy is not None:
+            colours = apply_lut(u.entropy, 0.0, self.entropy_max, self._magma)
+            rec.log("frame/entropy", rr.EncodedImage(
+                contents=encode_jpeg_rgb(colours, self.jpeg_quality), media_type="image/jpeg"))
+        if u.keep_mask is not None:
+            m = np.asarray(u.keep_mask, dtype=bool).astype(np.uint8) * 255
+            rec.log("frame/kept_mask", rr.EncodedImage(contents=encode_png(m), media_type="image/png"))
+
+    def _log_points(self, u: Any) -> None:
+        pts = np.asarray(u.points_world, dtype=np.float32).reshape(-1, 3)
+        if len(pts) > self.max_points:
+            pts = pts[:: int(math.ceil(len(pts) / self.max_points))]
+        self.rec.log("world/points", self.rr.Points3D(pts, colors=[80, 220, 255], radii=0.04))
+
+    def _log_trajectory(self, u: Any) -> None:
+        """Camera path: the current segment entity is re-logged each frame; full segments stay put."""
+        p = np.asarray(u.T_world_cam2, dtype=np.float64)[:3, 3].astype(np.float32)
+        seg = self._traj_n // self.trajectory_block
+        self._traj_seg.append(p)
+        self._traj_n += 1
+        self.rec.log(f"world/trajectory/seg_{seg:04d}",
+                     self.rr.LineStrips3D([np.stack(self._traj_seg)], colors=[255, 60, 60], radii=0.15))
+        if self._traj_n % self.trajectory_block == 0:
+            self._traj_seg = [p]  # the next segment starts where this one ends: no gap
+
+    # ----------------------------------------------------------------- map
+
+    def _flush_map(self) -> None:
+        """Apply the pending per-frame changes (in frame order) and re-log every touched block."""
+        pending = list(zip(self._pending_add, self._pending_rem))
+        self._pending_add, self._pending_rem = [], []
+        touched: set[int] = set()
+        for add, rem in pending:
+            for keys, adding in ((add, True), (rem, False)):
+                if len(keys) == 0:
+                    continue
+                bkeys = pack(np.floor_divide(unpack(keys), self.block_cells))
+                order = np.argsort(bkeys, kind="stable")
+                ub, starts = np.unique(bkeys[order], return_index=True)
+                ends = np.append(starts[1:], len(order))
+                for bk, s0, s1 in zip(ub.tolist(), starts, ends):
+                    kb = keys[order[s0:s1]]
+                    old = self._blocks.get(bk)
+                    old = old if old is not None else np.zeros(0, np.int64)
+                    new = np.union1d(old, kb) if adding else np.setdiff1d(old, kb)
+                    self.map_cells += len(new) - len(old)
+                    if len(new):
+                        self._blocks[bk] = new
+                    else:
+                        self._blocks.pop(bk, None)
+                    touched.add(bk)
+        for bk in sorted(touched):
+            bx, by, bz = unpack(np.array([bk]))[0].tolist()
+            path = f"world/map/occupied/b{bx}_{by}_{bz}"
+            keys = self._blocks.get(bk)
+            if keys is None:
+                self.rec.log(path, self.rr.Clear(recursive=False))
+            else:
+                self.rec.log(path, self._cells_archetype(unpack(keys), self.resolution))
+                self.cells_logged += len(keys)
+        self.blocks_logged += len(touched)
+        self.block_entities |= touched
+
+    def occupied_cells(self) -> np.ndarray:
+        """Current occupied cell centres (N,3) metres, as the logger tracks them (for checks)."""
+        if not self._blocks:
+            return np.zeros((0, 3))
+        keys = np.concatenate(list(self._blocks.values()))
+        return (unpack(keys).astype(np.float64) + 0.5) * self.resolution
+
+    # ----------------------------------------------------------------- end
+
+    def close(self) -> None:
+        """Flush the last dirty blocks, finish the recording and move it into place."""
+        if self._closed:
+            return
+        self._flush_map()
+        self._closed = True
+        self.rec.flush()
+        self.rec.disconnect()
+        if self._tmp_rrd is not None:
+            import os
+
+            os.replace(self._tmp_rrd, self.rrd)
+
+    def abort(self) -> None:
+        """Stop without writing the recording (used when the build fails)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.rec.disconnect()
+        if self._tmp_rrd is not None and self._tmp_rrd.exists():
+            self._tmp_rrd.unlink()
+
+    def __enter__(self) -> "RerunMapLogger":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+# --------------------------------------------------------------------------- finished maps
+
+
+def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool = False,
+               cells: str = "voxels", block_cells: int = 32) -> dict:
+    """Log a finished OctoMap ``.bt``: occupied cells (finest resolution) coloured by height.
+
+    Static data, one entity per spatial block ``world/map/occupied/b<X>_<Y>_<Z>`` (as in the
+    stream), height range = the map's own 2-98th percentile. Returns counts for the caller.
+    """
+    import rerun as rr
+
+    from mono_map.viz.blueprint import default_blueprint
+
+    if cells not in CELL_STYLES:
+        raise MonoMapError(f"--cells: {cells!r} is not one of {', '.join(CELL_STYLES)}")
+    centres, res = occupied_cells_from_bt(bt_path)
+    idx = cell_indices(centres, res)
+    hrange = height_range_of(idx, res)
+    lut = colormap_lut("turbo")
+    rec = rr.RecordingStream(APP_ID, recording_id=None)
+    rec.send_recording_name(Path(bt_path).name)
+    sinks, tmp = [], None
+    if rrd is not None:
+        rrd = Path(rrd)
+        rrd.parent.mkdir(parents=True, exist_ok=True)
+        tmp = rrd.with_name(f".{rrd.name}.tmp")
+        sinks.append(rr.FileSink(str(tmp)))
+    if spawn:
+        rr.spawn(connect=False, hide_welcome_screen=True)
+        sinks.append(rr.GrpcSink())
+    if not sinks:
+        raise MonoMapError("view: nothing to do (no --save and no viewer)")
+    rec.set_sinks(*sinks, default_blueprint=default_blueprint(reference=False, frames=False))
+    rec.log("world", rr.ViewCoordinates.RDF, static=True)
+    blocks = pack(np.floor_divide(idx, block_cells)) if len(idx) else np.zeros(0, np.int64)
+    order = np.argsort(blocks, kind="stable")
+    ub, starts = np.unique(blocks[order], return_index=True)
+    ends = np.append(starts[1:], len(order))
+    for bk, s0, s1 in zip(ub, starts, ends):
+        bx, by, bz = unpack(np.array([bk]))[0].tolist()
+        rec.log(f"world/map/occupied/b{bx}_{by}_{bz}", cells_archetype(idx[order[s0:s1]], res, cells, hrange, lut),
+                static=True)
+    rec.flush()
+    rec.disconnect()
+    if tmp is not None:
+        import os
+
+        os.replace(tmp, rrd)
+    return {"cells": int(len(idx)), "blocks": int(len(ub)), "resolution": res,
+            "height_range": hrange}
