@@ -102,7 +102,7 @@ class DepthPredictor:
     """A loaded depth model. ``space`` picks the expectation: "log" exp(Σp log d) or "linear" Σp d."""
 
     def __init__(self, model: DepthNet, checkpoint: Path | None = None, device: str = "cpu",
-                 space: str = "log", training: dict | None = None):
+                 space: str = "log", training: dict | None = None, fast: bool = False):
         self.model = model.eval()
         self.cfg = model.cfg
         self.bins = model.cfg.bins
@@ -110,17 +110,18 @@ class DepthPredictor:
         self.device = device
         self.space = space
         self.training = training or {}
+        self.fast = fast  # True: statistics at the decoder's stride 4, then up-sampled (~16x less work)
 
     @classmethod
     def load(cls, checkpoint: str | os.PathLike | None = None, device: str = "cpu",
-             space: str = "log") -> "DepthPredictor":
+             space: str = "log", fast: bool = False) -> "DepthPredictor":
         """None -> the shipped binary checkpoint; a bare head name (e.g. "softmax") -> its shipped checkpoint."""
         if checkpoint is None:
             checkpoint = default_checkpoint("binary")
         elif not Path(checkpoint).suffix and not Path(checkpoint).exists():
             checkpoint = default_checkpoint(str(checkpoint))
         model, payload = load_checkpoint(checkpoint, device)
-        return cls(model, Path(checkpoint), device, space, payload.get("training"))
+        return cls(model, Path(checkpoint), device, space, payload.get("training"), fast)
 
     @property
     def head(self) -> str:
@@ -151,12 +152,16 @@ class DepthPredictor:
             return []
         x, (fh, fw), (h, w) = self._prepare(images)
         mc = self.cfg.mc_samples if get_dropout(self.model) else 0
-        out = self.model(x, mc_samples=mc)
-        out = out[..., :fh, :fw]
+        out = self.model(x, mc_samples=mc, upsample=not self.fast)
+        if not self.fast:
+            out = out[..., :fh, :fw]
         res = decode(self.model.head, out, self.bins, self.space, with_probs=with_probs)
+        H, W = x.shape[-2:]
 
         def up(t):  # (B,C,h',w') -> (B,C,h,w)
-            return F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False) if (fh, fw) != (h, w) else t
+            if self.fast:  # stride-4 maps -> model input size -> crop the image part
+                t = F.interpolate(t, size=(H, W), mode="bilinear", align_corners=False)[..., :fh, :fw]
+            return F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False) if t.shape[-2:] != (h, w) else t
 
         depth = up(res["depth"].unsqueeze(1))[:, 0].clamp(self.bins.min_depth, self.bins.max_depth)
         ent = up(res["entropy"].unsqueeze(1))[:, 0]

@@ -139,6 +139,14 @@ def decode(head: HeadSpec | str, outputs: torch.Tensor, bins: DepthBins, space: 
     """
     head = get_head(head) if isinstance(head, str) else head
     mc = outputs.dim() == 5
+    if head.kind == "bins" and not mc:  # one log-softmax serves probabilities, entropy and expectation
+        logp = torch.log_softmax(outputs, 1)
+        p = logp.exp()
+        c = dist._centres(bins, p, space == "log")
+        e = (p * c).sum(1)
+        centres = torch.as_tensor(bins.centres, dtype=p.dtype, device=p.device)
+        return {"depth": e.exp() if space == "log" else e, "entropy": -(p * logp).sum(1),
+                "argmax": centres[outputs.argmax(1)], "probs": p if with_probs else None}
     if head.kind in ("bins", "ordinal"):
         if head.kind == "bins":
             p = dist.probs_from_logits(outputs.flatten(0, 1) if mc else outputs)

@@ -218,10 +218,15 @@ class DepthNet(nn.Module):
         y = self.up8(self._up_cat(y, f[2]))
         return self.up4(self._up_cat(y, f[1]))
 
-    def forward(self, x, mc_samples: int = 0):
-        """Returns (B,C,H,W); with mc_samples > 0 (dropout heads) (S,B,C,H,W) with dropout active."""
+    def forward(self, x, mc_samples: int = 0, upsample: bool = True):
+        """Returns (B,C,H,W); with mc_samples > 0 (dropout heads) (S,B,C,H,W) with dropout active.
+
+        upsample=False returns the score maps at the decoder's stride-4 resolution.
+        """
         size = x.shape[-2:]
         feat = self.trunk(x)
+        if not upsample:
+            size = feat.shape[-2:]
         if mc_samples <= 0:
             return F.interpolate(self.tail(feat), size=size, mode="bilinear", align_corners=False)
         was = self.tail.training

@@ -1,0 +1,67 @@
+"""CLI: frame selection, predict on an image folder, eval-depth on the real KITTI object frames."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mono_map.cli import main
+from mono_map.data.depth_png import read_depth_png
+from mono_map.depth.commands import parse_frames
+from mono_map.depth.inference import save_checkpoint
+from mono_map.depth.networks import DepthNet, named_config
+from mono_map.errors import MonoMapError
+
+OBJECT = Path(__file__).resolve().parents[2] / "shared" / "kitti_real" / "object" / "training"  # /work/shared/...
+TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),
+            num_bins=16, input_height=64, input_width=192)
+
+
+def test_parse_frames():
+    assert parse_frames("0:10:5", 100) == [0, 5]
+    assert parse_frames("3,7", 10) == [3, 7]
+    assert parse_frames(None, 3) == [0, 1, 2]
+    with pytest.raises(MonoMapError, match="--frames"):
+        parse_frames("5,20", 10)
+    with pytest.raises(MonoMapError, match="--frames"):
+        parse_frames("a:b", 10)
+
+
+@pytest.fixture
+def tiny_ckpt(tmp_path):
+    torch.manual_seed(0)
+    path = tmp_path / "tiny.pt"
+    save_checkpoint(path, DepthNet(named_config("small", **TINY)), {"step": 0})
+    return path
+
+
+def test_predict_image_folder(tmp_path, tiny_ckpt):
+    import cv2
+
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    cv2.imwrite(str(imgs / "a.png"), (np.random.default_rng(0).random((60, 200, 3)) * 255).astype(np.uint8))
+    out = tmp_path / "out"
+    assert main(["predict", "--images", str(imgs), "--model", str(tiny_ckpt), "--out", str(out), "--npz"]) == 0
+    d = read_depth_png(out / "depth" / "a.png")
+    assert d.shape == (60, 200) and d.min() >= 1.0 - 1 / 256 and d.max() <= 80.0
+    assert (out / "vis" / "a.jpg").is_file()
+    z = np.load(out / "npz" / "a.npz")
+    assert z["probs"].shape[0] == 16 and z["depth"].shape == (60, 200)
+
+
+def test_eval_depth_on_real_object_frames(tmp_path, tiny_ckpt):
+    if not OBJECT.is_dir():
+        pytest.fail(f"{OBJECT}: real KITTI object frames missing")
+    out = tmp_path / "ev"
+    assert main(["eval-depth", "--kitti-object", str(OBJECT), "--model", str(tiny_ckpt), "--out", str(out)]) == 0
+    res = json.loads((out / "depth_object.json").read_text())["results"]["binary"]
+    assert res["n_frames"] == 3 and res["n_pixels"] > 10000  # HDL-64E points inside image_2
+    s = res["sparsification"]
+    for k in ("are", "rmse", "1-d1"):
+        assert s["auc_oracle"][k] <= s["auc"][k]
+    assert res["hypotheses"]["5"]["abs_rel"] <= res["hypotheses"]["1"]["abs_rel"]
+    assert (out / "sparsification_object.png").stat().st_size > 1000
+    assert main(["eval-depth", "--kitti-object", str(tmp_path), "--model", str(tiny_ckpt)]) == 2
