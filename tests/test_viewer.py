@@ -45,10 +45,19 @@ def map_cells_at(rows, frame):
             continue
         last = past[-1]
         if last.get("VoxelGridMap:voxel_indices") is not None:
-            cells |= {tuple(v) for v in last["VoxelGridMap:voxel_indices"]}
+            cells |= voxel_cells(last)
         else:
             assert last.get("Clear:is_recursive") is not None, f"{path}: neither voxels nor a clear"
     return cells
+
+
+def voxel_cells(row):
+    """Absolute cell indices of a VoxelGridMap row (indices are relative to its translation)."""
+    idx = np.asarray(row["VoxelGridMap:voxel_indices"], dtype=np.int64).reshape(-1, 3)
+    t = row.get("VoxelGridMap:translation")
+    if t is not None:
+        idx = idx + np.round(np.asarray(t[0]) / RES).astype(np.int64)
+    return {tuple(v) for v in idx.tolist()}
 
 
 def centres(cells):
@@ -175,7 +184,7 @@ def test_logger_without_depth_or_images_and_with_reference_map(tmp_path, small_b
     assert "/frame/depth" not in rows and "/frame/entropy" not in rows
     ref = rows["/world/reference_map"]
     assert len(ref) == 1 and ref[0][0] is None  # static
-    assert {tuple(v) for v in ref[0][1]["VoxelGridMap:voxel_indices"]} == cells
+    assert voxel_cells(ref[0][1]) == cells
     assert logger.reference_cells == len(cells)
 
 
@@ -230,7 +239,7 @@ def test_view_bt_save_writes_valid_rrd(tmp_path, small_bt, capsys):
     for p, es in rows.items():
         if p.startswith("/world/map/occupied/"):
             assert len(es) == 1 and es[0][0] is None  # static
-            got |= {tuple(v) for v in es[0][1]["VoxelGridMap:voxel_indices"]}
+            got |= voxel_cells(es[0][1])
     assert got == cells  # pruned nodes expanded back to finest cells, nothing lost or invented
     assert "/world" in rows
     assert f"{len(cells)} occupied cells" in capsys.readouterr().err

@@ -13,7 +13,8 @@ What is logged (entity paths; all temporal data on the ``frame`` sequence timeli
 ``world/camera``                ``Transform3D`` T_world_cam2 + ``Pinhole`` (image_2's K, W×H)
 ``world/camera/image``          image_2, JPEG (shown in the 3-D frustum and in 2-D)
 ``frame/depth``                 predicted expected depth, ``EncodedDepthImage`` (16-bit PNG,
-                                millimetres), colour-mapped by the viewer (Turbo, 1-80 m)
+                                millimetres, ``aux_scale`` of full size), colour-mapped by the
+                                viewer (Turbo, 1-80 m)
 ``frame/entropy``               per-pixel entropy (nats), colour-mapped (magma) over
                                 [0, ``entropy_max``], JPEG
 ``frame/kept_mask``             kept pixels (white) vs dropped (black), PNG
@@ -51,6 +52,7 @@ normalised height"), or as ``Points3D``/``Boxes3D`` with colours computed here.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -157,19 +159,24 @@ def height_range_of(idx: np.ndarray, resolution: float, q=(2.0, 98.0), pad_low: 
 
 
 def cells_archetype(idx: np.ndarray, resolution: float, style: str = "voxels",
-                    height_range: tuple[float, float] = DEFAULT_HEIGHT_RANGE, lut: np.ndarray | None = None):
+                    height_range: tuple[float, float] = DEFAULT_HEIGHT_RANGE, lut: np.ndarray | None = None,
+                    origin: np.ndarray | None = None):
     """rerun archetype drawing cells (integer indices (N,3)) coloured by height = -y (metres).
 
     "voxels": ``VoxelGridMap`` (height values, Turbo colour-mapped by the viewer over height_range);
+    voxel indices are stored relative to ``origin`` (a block corner, cells) with the grid translated
+    by origin·res, so they are small numbers that the recording's LZ4 compresses well.
     "points": ``Points3D`` of radius res/2; "boxes": solid ``Boxes3D`` (colours computed here).
     """
     import rerun as rr
 
     lo, hi = height_range
     if style == "voxels":
+        o = np.zeros(3, np.int64) if origin is None else np.asarray(origin, np.int64)
         return rr.VoxelGridMap(
-            idx.astype(np.int32), voxel_size=[resolution] * 3, values=heights(idx, resolution),
-            value_range=[lo, hi], colormap=rr.components.Colormap.Turbo)
+            (idx - o).astype(np.int32), voxel_size=[resolution] * 3, values=heights(idx, resolution),
+            value_range=[lo, hi], colormap=rr.components.Colormap.Turbo,
+            translation=(o * resolution).astype(np.float64))
     centres = ((idx.astype(np.float64) + 0.5) * resolution).astype(np.float32)
     colours = apply_lut(heights(idx, resolution), lo, hi, lut if lut is not None else colormap_lut("turbo"))
     if style == "points":
@@ -191,9 +198,13 @@ def _encode(ext: str, img: np.ndarray, params: list[int]) -> bytes:
 
 
 def encode_jpeg_rgb(rgb: np.ndarray, quality: int = 85) -> bytes:
+    return encode_jpeg_bgr(np.ascontiguousarray(rgb[..., ::-1]), quality)
+
+
+def encode_jpeg_bgr(bgr: np.ndarray, quality: int = 85) -> bytes:
     import cv2
 
-    return _encode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return _encode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
 
 
 def encode_png(gray_or_u16: np.ndarray) -> bytes:
@@ -217,7 +228,8 @@ class RerunMapLogger:
       (None: from the reference map if given, else DEFAULT_HEIGHT_RANGE); max_points: cap on this
       frame's logged end points; trajectory_block: frames per trajectory segment entity;
       entropy_max: top of the entropy colour scale (nats; default ln 64, the 64-bin maximum);
-      jpeg_quality: of image_2 and the entropy picture.
+      jpeg_quality: of image_2 and the entropy picture; aux_scale: size of the depth, entropy and
+      mask pictures relative to image_2 (they fill quarter-width panels; 0.5 quarters their cost).
     """
 
     def __init__(
@@ -227,14 +239,16 @@ class RerunMapLogger:
         reference_map: str | Path | None = None,
         resolution: float = 0.2,
         *,
-        block_cells: int = 32,
+        block_cells: int = 64,
         map_every: int = 1,
         cells: str = "voxels",
         height_range: tuple[float, float] | None = None,
-        max_points: int = 20000,
+        max_points: int = 8000,
         trajectory_block: int = 100,
         entropy_max: float = math.log(64),
         jpeg_quality: int = 85,
+        aux_scale: float = 0.5,
+        flush_s: float = 2.0,
         recording_name: str | None = None,
         blueprint: bool = True,
     ) -> None:
@@ -257,6 +271,9 @@ class RerunMapLogger:
         self.trajectory_block = int(trajectory_block)
         self.entropy_max = float(entropy_max)
         self.jpeg_quality = int(jpeg_quality)
+        if not 0 < aux_scale <= 1:
+            raise MonoMapError(f"aux_scale: must be in (0, 1] (got {aux_scale})")
+        self.aux_scale = float(aux_scale)
         self.rrd = Path(rrd) if rrd is not None else None
 
         ref_idx = None
@@ -267,9 +284,13 @@ class RerunMapLogger:
         self.height_range = tuple(height_range) if height_range is not None else (
             height_range_of(ref_idx, self._ref_res) if ref_idx is not None else DEFAULT_HEIGHT_RANGE)
         self._turbo = colormap_lut("turbo")
-        self._magma = colormap_lut("magma")
+        self._magma_bgr = np.ascontiguousarray(colormap_lut("magma")[:, ::-1])
 
-        self.rec = rr.RecordingStream(APP_ID, recording_id=None)
+        # Batch rows for a few seconds before cutting chunks: every touched block is one row per frame,
+        # and one chunk per row would cost more in chunk headers than the cells themselves.
+        batcher = rr.ChunkBatcherConfig(flush_tick=float(os.environ.get("MONO_MAP_RR_FLUSH_S", flush_s)),
+                                        flush_num_bytes=32 << 20)
+        self.rec = rr.RecordingStream(APP_ID, recording_id=None, batcher_config=batcher)
         if recording_name:
             self.rec.send_recording_name(recording_name)
         bp = None
@@ -311,8 +332,8 @@ class RerunMapLogger:
         self.map_cells = 0
         self._closed = False
 
-    def _cells_archetype(self, idx: np.ndarray, resolution: float):
-        return cells_archetype(idx, resolution, self.cells, self.height_range, self._turbo)
+    def _cells_archetype(self, idx: np.ndarray, resolution: float, origin=None):
+        return cells_archetype(idx, resolution, self.cells, self.height_range, self._turbo, origin)
 
     # ----------------------------------------------------------------- per frame
 
@@ -355,6 +376,16 @@ class RerunMapLogger:
                                                      image_plane_distance=2.0))
             self._pinhole_logged = key
 
+    def _aux(self, a: np.ndarray, nearest: bool = False) -> np.ndarray:
+        """Depth/entropy/mask pictures at ``aux_scale`` of the image size (they fill small panels)."""
+        if self.aux_scale == 1.0:
+            return a
+        import cv2
+
+        h, w = a.shape[:2]
+        size = (max(1, round(w * self.aux_scale)), max(1, round(h * self.aux_scale)))
+        return cv2.resize(a, size, interpolation=cv2.INTER_NEAREST if nearest else cv2.INTER_AREA)
+
     def _log_images(self, u: Any) -> None:
         rr, rec = self.rr, self.rec
         if u.image is not None:
@@ -362,17 +393,19 @@ class RerunMapLogger:
                 contents=encode_jpeg_rgb(np.asarray(u.image, dtype=np.uint8), self.jpeg_quality),
                 media_type="image/jpeg"))
         if u.depth is not None:
-            d = np.nan_to_num(np.asarray(u.depth, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+            d = np.asarray(u.depth, dtype=np.float32)
+            d = self._aux(np.where(np.isfinite(d), d, 0.0).astype(np.float32), nearest=True)
             mm = np.clip(d * 1000.0 + 0.5, 0, 65535).astype(np.uint16)
             rec.log("frame/depth", rr.EncodedDepthImage(
                 encode_png(mm), media_type="image/png", meter=1000.0,
                 colormap=rr.components.Colormap.Turbo, depth_range=[1000.0, 80000.0]))  # raw units (mm)
         if u.entropy is not None:
-            colours = apply_lut(u.entropy, 0.0, self.entropy_max, self._magma)
+            e = self._aux(np.asarray(u.entropy, dtype=np.float32))
+            q = np.clip(np.nan_to_num(e, nan=0.0) * (255.0 / self.entropy_max), 0, 255).astype(np.uint8)
             rec.log("frame/entropy", rr.EncodedImage(
-                contents=encode_jpeg_rgb(colours, self.jpeg_quality), media_type="image/jpeg"))
+                contents=encode_jpeg_bgr(self._magma_bgr[q], self.jpeg_quality), media_type="image/jpeg"))
         if u.keep_mask is not None:
-            m = np.asarray(u.keep_mask, dtype=bool).astype(np.uint8) * 255
+            m = self._aux(np.asarray(u.keep_mask, dtype=bool).astype(np.uint8) * 255, nearest=True)
             rec.log("frame/kept_mask", rr.EncodedImage(contents=encode_png(m), media_type="image/png"))
 
     def _log_points(self, u: Any) -> None:
@@ -425,7 +458,8 @@ class RerunMapLogger:
             if keys is None:
                 self.rec.log(path, self.rr.Clear(recursive=False))
             else:
-                self.rec.log(path, self._cells_archetype(unpack(keys), self.resolution))
+                origin = np.array([bx, by, bz]) * self.block_cells
+                self.rec.log(path, self._cells_archetype(unpack(keys), self.resolution, origin))
                 self.cells_logged += len(keys)
         self.blocks_logged += len(touched)
         self.block_entities |= touched
@@ -475,7 +509,7 @@ class RerunMapLogger:
 
 
 def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool = False,
-               cells: str = "voxels", block_cells: int = 32) -> dict:
+               cells: str = "voxels", block_cells: int = 64) -> dict:
     """Log a finished OctoMap ``.bt``: occupied cells (finest resolution) coloured by height.
 
     Static data, one entity per spatial block ``world/map/occupied/b<X>_<Y>_<Z>`` (as in the
@@ -512,7 +546,8 @@ def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool =
     ends = np.append(starts[1:], len(order))
     for bk, s0, s1 in zip(ub, starts, ends):
         bx, by, bz = unpack(np.array([bk]))[0].tolist()
-        rec.log(f"world/map/occupied/b{bx}_{by}_{bz}", cells_archetype(idx[order[s0:s1]], res, cells, hrange, lut),
+        rec.log(f"world/map/occupied/b{bx}_{by}_{bz}", cells_archetype(idx[order[s0:s1]], res, cells, hrange, lut,
+                                                                  np.array([bx, by, bz]) * block_cells),
                 static=True)
     rec.flush()
     rec.disconnect()
