@@ -14,6 +14,16 @@ from mono_map.depth.inference import save_checkpoint
 from mono_map.depth.networks import DepthNet, named_config
 from mono_map.errors import MonoMapError
 
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """One intra-op thread: on the shared 2-core machine two threads spin-wait and run ~10x slower."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 OBJECT = Path(__file__).resolve().parents[2] / "shared" / "kitti_real" / "object" / "training"  # /work/shared/...
 TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),
             num_bins=16, input_height=64, input_width=192)
@@ -56,7 +66,8 @@ def test_eval_depth_on_real_object_frames(tmp_path, tiny_ckpt):
     if not OBJECT.is_dir():
         pytest.fail(f"{OBJECT}: real KITTI object frames missing")
     out = tmp_path / "ev"
-    assert main(["eval-depth", "--kitti-object", str(OBJECT), "--model", str(tiny_ckpt), "--out", str(out)]) == 0
+    assert main(["eval-depth", "--kitti-object", str(OBJECT), "--model", str(tiny_ckpt), "--out", str(out),
+                 "--threads", "1"]) == 0
     res = json.loads((out / "depth_object.json").read_text())["results"]["binary"]
     assert res["n_frames"] == 3 and res["n_pixels"] > 10000  # HDL-64E points inside image_2
     s = res["sparsification"]

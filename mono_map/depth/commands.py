@@ -43,6 +43,8 @@ def register(subparsers) -> None:
     p.add_argument("--cap", type=float, default=80.0, help="maximum ground-truth depth (m)")
     p.add_argument("--garg-crop", action="store_true", help="evaluate inside Garg's crop only")
     p.add_argument("--out", default="outputs/eval_depth", help="output folder (JSON, Markdown, PNG)")
+    p.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
+    p.add_argument("--fast", action="store_true", help="distribution statistics at the decoder's stride 4, then up-sampled")
     p.set_defaults(func=run_eval_depth)
 
 
@@ -147,7 +149,7 @@ def run_predict(args) -> int:
 
             from mono_map.depth.losses import decode
 
-            raw, _ = pred.raw_outputs(img)
+            raw, _ = pred.raw_outputs([img])
             probs = decode(pred.head, raw, pred.bins, with_probs=True)["probs"]
             with atomic_path(out / "npz" / f"{name}.npz") as tmp:
                 np.savez_compressed(tmp, probs=None if probs is None else probs[0].numpy().astype(np.float16),
@@ -176,10 +178,10 @@ def run_eval_depth(args) -> int:
     from mono_map.errors import MonoMapError
     from mono_map.io import write_json_atomic, write_text_atomic
 
-    torch.set_num_threads(2)
+    torch.set_num_threads(max(1, args.threads))
     predictors = {}
     for m in _models(args):
-        p = DepthPredictor.load(m)
+        p = DepthPredictor.load(m, fast=args.fast)
         key = p.head if p.head not in predictors else f"{p.head} ({m})"
         predictors[key] = p
     if args.kitti_object:

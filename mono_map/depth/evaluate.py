@@ -60,15 +60,18 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
             t0 = time.perf_counter()
             predictor.predict(image)
             times.append(1000 * (time.perf_counter() - t0))
-        out, (h, w) = predictor.raw_outputs(image)
+        out, geom = predictor.raw_outputs([image])
         with torch.inference_mode():
             r_log = decode(predictor.head, out, bins, "log", with_probs=True)
             r_lin = decode(predictor.head, out, bins, "linear")
             maps = torch.stack([r_log["depth"], r_lin["depth"], r_log["argmax"], r_log["entropy"]], 1)
-            maps = F.interpolate(maps, size=(h, w), mode="bilinear", align_corners=False)[0].numpy()
+            maps = predictor.to_image(maps, geom)[0].numpy()
             if r_log["probs"] is not None:
                 modes = top_modes(r_log["probs"], bins, max(MS))[0]
-                modes = F.interpolate(modes, size=(h, w), mode="nearest")[0].numpy()
+                (H, W), (fh, fw), (h, w), low = geom
+                if low:
+                    modes = F.interpolate(modes, size=(H, W), mode="nearest")
+                modes = F.interpolate(modes[..., :fh, :fw], size=(h, w), mode="nearest")[0].numpy()
             else:
                 modes = maps[None, 0].repeat(max(MS), 0)
         m = valid_mask(gt, cap, garg_crop=garg_crop)

@@ -146,44 +146,46 @@ class DepthPredictor:
         x = torch.from_numpy(np.stack(batch)).permute(0, 3, 1, 2).float().div_(255.0)
         return x.to(self.device), (fh, fw), (h, w)
 
+    def _forward(self, x: torch.Tensor) -> tuple[torch.Tensor, bool]:
+        """Raw head outputs; MC-dropout heads sample the tail at stride 4 (32 full-size samples would not fit)."""
+        mc = self.cfg.mc_samples if get_dropout(self.model) else 0
+        low = self.fast or mc > 0
+        return self.model(x, mc_samples=mc, upsample=not low), low
+
+    def to_image(self, t: torch.Tensor, geom: tuple) -> torch.Tensor:
+        """(B,C,h',w') maps at network resolution -> (B,C,h,w) at the input image's resolution (bilinear)."""
+        (H, W), (fh, fw), (h, w), low = geom
+        if low:  # stride-4 maps -> model input size
+            t = F.interpolate(t, size=(H, W), mode="bilinear", align_corners=False)
+        t = t[..., :fh, :fw]
+        return F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False) if (fh, fw) != (h, w) else t
+
+    @torch.inference_mode()
+    def raw_outputs(self, images: list[np.ndarray]) -> tuple[torch.Tensor, tuple]:
+        """Raw head outputs (uncropped network resolution) and the geometry ``to_image`` needs."""
+        x, (fh, fw), (h, w) = self._prepare(images)
+        out, low = self._forward(x)
+        return out, (tuple(x.shape[-2:]), (fh, fw), (h, w), low)
+
     @torch.inference_mode()
     def predict_batch(self, images: list[np.ndarray], with_probs: bool = False) -> list[DepthPrediction]:
         if not images:
             return []
-        x, (fh, fw), (h, w) = self._prepare(images)
-        mc = self.cfg.mc_samples if get_dropout(self.model) else 0
-        out = self.model(x, mc_samples=mc, upsample=not self.fast)
-        if not self.fast:
-            out = out[..., :fh, :fw]
+        out, geom = self.raw_outputs(images)
         res = decode(self.model.head, out, self.bins, self.space, with_probs=with_probs)
-        H, W = x.shape[-2:]
-
-        def up(t):  # (B,C,h',w') -> (B,C,h,w)
-            if self.fast:  # stride-4 maps -> model input size -> crop the image part
-                t = F.interpolate(t, size=(H, W), mode="bilinear", align_corners=False)[..., :fh, :fw]
-            return F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False) if t.shape[-2:] != (h, w) else t
-
-        depth = up(res["depth"].unsqueeze(1))[:, 0].clamp(self.bins.min_depth, self.bins.max_depth)
-        ent = up(res["entropy"].unsqueeze(1))[:, 0]
-        amax = up(res["argmax"].unsqueeze(1))[:, 0]
-        probs = up(res["probs"]) if (with_probs and res["probs"] is not None) else None
+        stats = self.to_image(torch.stack([res["depth"], res["entropy"], res["argmax"]], 1), geom)
+        depth = stats[:, 0].clamp(self.bins.min_depth, self.bins.max_depth)
+        probs = self.to_image(res["probs"], geom) if (with_probs and res["probs"] is not None) else None
         preds = []
         for b in range(len(images)):
             preds.append(DepthPrediction(
-                depth=depth[b].cpu().numpy().astype(np.float32), entropy=ent[b].cpu().numpy().astype(np.float32),
+                depth=depth[b].cpu().numpy().astype(np.float32), entropy=stats[b, 1].cpu().numpy().astype(np.float32),
                 probs=None if probs is None else probs[b].cpu().numpy().astype(np.float32),
-                argmax=amax[b].cpu().numpy().astype(np.float32)))
+                argmax=stats[b, 2].cpu().numpy().astype(np.float32)))
         return preds
 
     def predict(self, image: np.ndarray, with_probs: bool = False) -> DepthPrediction:
         return self.predict_batch([image], with_probs=with_probs)[0]
-
-    @torch.inference_mode()
-    def raw_outputs(self, image: np.ndarray) -> tuple[torch.Tensor, tuple[int, int]]:
-        """Raw head outputs at model resolution (cropped), for evaluation (modes, sampling)."""
-        x, (fh, fw), (h, w) = self._prepare([image])
-        mc = self.cfg.mc_samples if get_dropout(self.model) else 0
-        return self.model(x, mc_samples=mc)[..., :fh, :fw], (h, w)
 
 
 def get_dropout(model: DepthNet) -> bool:
