@@ -14,27 +14,43 @@ STAT_PLOTS = (
 )
 
 
-def default_blueprint(reference: bool = False, frames: bool = True):
+GROUND_Y = 1.65  # metres: KITTI's camera height above the road; world y points down
+
+
+def eye_for_bounds(lo, hi) -> tuple[list[float], list[float]]:
+    """An oblique overview eye (position, look target), world metres, for a map spanning lo..hi."""
+    lo, hi = [float(v) for v in lo], [float(v) for v in hi]
+    cx, cz = (lo[0] + hi[0]) / 2, (lo[2] + hi[2]) / 2
+    ext = max(hi[0] - lo[0], hi[2] - lo[2], 10.0)
+    return [cx, GROUND_Y - 0.7 * ext, cz - 0.75 * ext], [cx, GROUND_Y, cz]
+
+
+def default_blueprint(reference: bool = False, frames: bool = True,
+                      eye: tuple[list[float], list[float]] | None = None):
     """Build the blueprint.
 
     reference: add a second 3-D view of ``world/reference_map`` (the LiDAR-FOV map) beside the
     growing map, with the same trajectory for orientation. frames: include the image row and the
-    time series (False for a finished map opened with ``mono-map view map.bt``).
+    time series (False for a finished map opened with ``mono-map view map.bt``). eye: (position,
+    look target) of the 3-D views, world metres (default: behind and above the start).
     """
+    import rerun as rr
     import rerun.blueprint as rrb
 
-    # World y points down (KITTI cam0): look from behind and above the start, y-up = -y.
-    eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=[0.0, -60.0, -50.0],
-                            look_target=[0.0, 0.0, 30.0], eye_up=[0.0, -1.0, 0.0])
+    # World y points down (KITTI cam0): up is -y; the grid lies on the road, not at camera height.
+    position, target = eye if eye is not None else ([0.0, -25.0, -30.0], [0.0, GROUND_Y, 25.0])
+    eye_ctl = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=position, look_target=target,
+                                eye_up=[0.0, -1.0, 0.0])
+    grid = rrb.LineGrid3D(visible=True, spacing=10.0, plane=rr.components.Plane3D([0.0, 1.0, 0.0], GROUND_Y))
     map_view = rrb.Spatial3DView(
         origin="world", name="map (occupied cells, colour = height)",
-        contents=["+ $origin/**", "- world/reference_map/**"], eye_controls=eye)
+        contents=["+ $origin/**", "- world/reference_map/**"], eye_controls=eye_ctl, line_grid=grid)
     top = [map_view]
     if reference:
         top.append(rrb.Spatial3DView(
             origin="world", name="LiDAR-FOV reference map",
             contents=["+ world/reference_map/**", "+ world/trajectory/**", "+ world/camera"],
-            eye_controls=eye))
+            eye_controls=eye_ctl, line_grid=grid))
     if not frames:
         return rrb.Blueprint(rrb.Horizontal(*top), collapse_panels=True)
     images = rrb.Horizontal(
@@ -49,5 +65,5 @@ def default_blueprint(reference: bool = False, frames: bool = True):
         rrb.Vertical(rrb.Horizontal(*top), images, series, row_shares=[5, 2, 1.5]),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="collapsed", timeline="frame"),
+        rrb.TimePanel(state="collapsed", timeline="frame", play_state="following"),
     )

@@ -144,6 +144,14 @@ def occupied_cells_from_bt(path: str | Path) -> tuple[np.ndarray, float]:
     return np.concatenate(out), res
 
 
+def map_bounds(centres: np.ndarray, q=(1.0, 99.0)) -> tuple[np.ndarray, np.ndarray]:
+    """Robust bounding box (metres) of cell centres: per-axis percentiles ``q``."""
+    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    if len(c) == 0:
+        return np.zeros(3), np.zeros(3)
+    return np.percentile(c, q[0], axis=0), np.percentile(c, q[1], axis=0)
+
+
 def height_range_of(idx: np.ndarray, resolution: float, q=(2.0, 98.0), pad_low: float = 0.12
                     ) -> tuple[float, float]:
     """Robust height range (metres) of cells for colour normalisation.
@@ -294,10 +302,12 @@ class RerunMapLogger:
         if recording_name:
             self.rec.send_recording_name(recording_name)
         bp = None
+        self._blueprint = blueprint
+        self._has_reference = reference_map is not None
         if blueprint:
             from mono_map.viz.blueprint import default_blueprint
 
-            bp = default_blueprint(reference=reference_map is not None)
+            bp = default_blueprint(reference=self._has_reference)
         sinks = []
         self._tmp_rrd = None
         if self.rrd is not None:
@@ -479,6 +489,12 @@ class RerunMapLogger:
             return
         self._flush_map()
         self._closed = True
+        if self._blueprint and self._blocks:
+            # Re-send the layout with the 3-D eye fitted to the finished map (the first one could not know it).
+            from mono_map.viz.blueprint import default_blueprint, eye_for_bounds
+
+            lo, hi = map_bounds(self.occupied_cells())
+            self.rec.send_blueprint(default_blueprint(reference=self._has_reference, eye=eye_for_bounds(lo, hi)))
         self.rec.flush()
         self.rec.disconnect()
         if self._tmp_rrd is not None:
@@ -517,7 +533,7 @@ def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool =
     """
     import rerun as rr
 
-    from mono_map.viz.blueprint import default_blueprint
+    from mono_map.viz.blueprint import default_blueprint, eye_for_bounds
 
     if cells not in CELL_STYLES:
         raise MonoMapError(f"--cells: {cells!r} is not one of {', '.join(CELL_STYLES)}")
@@ -538,7 +554,8 @@ def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool =
         sinks.append(rr.GrpcSink())
     if not sinks:
         raise MonoMapError("view: nothing to do (no --save and no viewer)")
-    rec.set_sinks(*sinks, default_blueprint=default_blueprint(reference=False, frames=False))
+    eye = eye_for_bounds(*map_bounds(centres)) if len(centres) else None
+    rec.set_sinks(*sinks, default_blueprint=default_blueprint(reference=False, frames=False, eye=eye))
     rec.log("world", rr.ViewCoordinates.RDF, static=True)
     blocks = pack(np.floor_divide(idx, block_cells)) if len(idx) else np.zeros(0, np.int64)
     order = np.argsort(blocks, kind="stable")
