@@ -1,0 +1,206 @@
+"""Render a synthetic sequence from its recipe, frames in parallel, into the KITTI odometry layout.
+
+Frame i depends only on (recipe, i): the town is built from the whole recipe and every
+frame has its own random streams seeded by (seed, i), so a prefix can be extended later
+and two generations of the same recipe are byte-identical.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mono_map.config import KITTI_IMAGE_HEIGHT, KITTI_IMAGE_WIDTH
+from mono_map.data.synth import writer
+from mono_map.data.synth.recipe import Recipe, load_recipe, recipe_path
+from mono_map.data.synth.trajectory import frame_pose_indices, load_poses, pose_lines
+from mono_map.errors import MonoMapError
+
+GENERATOR_VERSION = "1"
+FRAME_PERIOD = 0.1          # seconds between consecutive real poses (KITTI records at 10 Hz)
+
+
+class FrameRenderer:
+    """Holds the ray-casting scene of one town; renders (image, depth, scan) of frame i."""
+
+    def __init__(self, recipe: Recipe, town, nthreads: int = 0):
+        import open3d as o3d
+
+        from mono_map.data.synth.camera import Lighting, PinholeCamera
+        from mono_map.data.synth.lidar import ray_directions
+        from mono_map.geometry import T_cam_cam0_from_projection, pose_inverse
+
+        self.recipe = recipe
+        self.town = town
+        self.nthreads = nthreads
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(town.vertices), o3d.core.Tensor(town.triangles.astype(np.uint32)))
+        calib = writer.read_calib()
+        self.K2 = calib["P2"][:, :3].copy()
+        self.T_cam0_cam2 = pose_inverse(T_cam_cam0_from_projection(calib["P2"]))
+        self.T_cam0_velo = calib["Tr"]
+        self.camera = PinholeCamera(self.K2, KITTI_IMAGE_HEIGHT, KITTI_IMAGE_WIDTH)
+        self.light = Lighting.from_recipe(recipe.light)
+        self.lidar_dirs = ray_directions()
+        self.poses = load_poses(recipe.trajectory)[frame_pose_indices(recipe)]
+
+    def render(self, i: int):
+        """(rgb H×W×3 uint8, depth H×W float32 metres, velodyne (M, 4) float32) of frame i."""
+        from mono_map.data.synth.camera import render
+        from mono_map.data.synth.lidar import scan
+
+        T_world_cam0 = self.poses[i]
+        rng = np.random.default_rng([self.recipe.seed, i, 1])
+        rgb, depth = render(self.scene, self.town, self.light, self.camera, T_world_cam0 @ self.T_cam0_cam2, rng,
+                            self.nthreads)
+        rng = np.random.default_rng([self.recipe.seed, i, 2])
+        pts = scan(self.scene, self.town, T_world_cam0 @ self.T_cam0_velo, self.lidar_dirs, rng, self.nthreads)
+        return rgb, depth, pts
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(recipe, town, seq_dir, nthreads):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _WORKER["renderer"] = FrameRenderer(recipe, town, nthreads)
+    _WORKER["seq_dir"] = Path(seq_dir)
+
+
+def _render_and_write(i: int) -> int:
+    rgb, depth, pts = _WORKER["renderer"].render(i)
+    writer.write_frame(_WORKER["seq_dir"], i, rgb, depth, pts)
+    return i
+
+
+def marker_info(recipe: Recipe, n_frames: int) -> dict:
+    return {"generator": "mono-map synth", "generator_version": GENERATOR_VERSION, "recipe": recipe.name,
+            "recipe_file": Path(recipe.path).name, "recipe_hash": recipe.content_hash(),
+            "trajectory": recipe.trajectory, "first_pose": recipe.first_pose, "pose_stride": recipe.pose_stride,
+            "n_frames": int(n_frames), "recipe_frames": recipe.frames,
+            "depth_2": "z-depth (m, cam2) of the first surface hit by each pixel's ray; glass = the glass pane"}
+
+
+def _is_current(info: dict | None, recipe: Recipe) -> bool:
+    return bool(info) and info.get("recipe_hash") == recipe.content_hash() \
+        and info.get("generator_version") == GENERATOR_VERSION
+
+
+def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: int = 2, force: bool = False,
+                      quiet: bool = False) -> Path:
+    """Write the first ``frames`` frames (None = all) of ``recipe`` under ``root``; returns the sequence dir.
+
+    Existing complete frames of the same recipe and generator version are kept (a prefix is
+    extended); ``force`` re-renders everything.  Refuses to touch a directory that holds a
+    sequence not written by this generator (no marker: e.g. a real KITTI sequence).
+    """
+    import json
+
+    from mono_map.data.synth.town import build_town
+    from mono_map.progress import progress
+
+    root = Path(root)
+    n = recipe.frames if frames is None else int(frames)
+    if not 1 <= n <= recipe.frames:
+        raise MonoMapError(f"--frames: recipe {recipe.name} has {recipe.frames} frames, asked for {n}")
+    if workers < 1:
+        raise MonoMapError(f"--workers: must be >= 1, got {workers}")
+    seq_dir = root / "sequences" / recipe.name
+    marker = writer.read_marker(seq_dir)
+    partial_path = seq_dir / writer.PARTIAL_MARKER
+    partial = json.loads(partial_path.read_text()) if partial_path.is_file() else None
+    if seq_dir.is_dir() and marker is None and partial is None and any(seq_dir.iterdir()):
+        raise MonoMapError(f"{seq_dir}: exists but was not written by mono-map synth (no {writer.MARKER}, "
+                           "e.g. a real KITTI sequence); refusing to overwrite it")
+    current = _is_current(marker, recipe)
+    if not force and current and marker.get("n_frames", 0) >= n and partial is None:
+        return seq_dir
+    fresh = force or (marker is not None and not current) or (partial is not None and not _is_current(partial, recipe))
+    if fresh:
+        (seq_dir / writer.MARKER).unlink(missing_ok=True)
+    seq_dir.mkdir(parents=True, exist_ok=True)
+    writer.write_marker(seq_dir, marker_info(recipe, n), partial=True)
+    todo = list(range(n)) if fresh else [i for i in range(n) if not writer.frame_complete(seq_dir, i)]
+    t0 = time.perf_counter()
+    if todo:
+        town = build_town(recipe)
+        if not quiet:
+            print(f"synth {recipe.name}: town of {town.stats['triangles']:,} triangles "
+                  f"({town.stats['buildings']} buildings, {town.stats['cars']} cars of which "
+                  f"{town.stats['black_cars']} black, {town.stats['trees']} trees) built in "
+                  f"{time.perf_counter() - t0:.1f} s; rendering {len(todo)} frames with {workers} worker(s)",
+                  file=sys.stderr)
+        _render_frames(recipe, town, seq_dir, todo, workers, quiet)
+    if fresh:
+        writer.remove_frames_from(seq_dir, n)
+    idx = frame_pose_indices(recipe)[:n]
+    n_keep = max(n, marker.get("n_frames", 0) if (marker and current and not fresh) else n)
+    idx = frame_pose_indices(recipe)[:n_keep]
+    times = (idx - recipe.first_pose) * FRAME_PERIOD
+    writer.write_sequence_files(root, recipe.name, pose_lines(recipe.trajectory, idx), times)
+    info = marker_info(recipe, n_keep)
+    info["seconds"] = round(time.perf_counter() - t0, 2)
+    writer.write_marker(seq_dir, info)
+    partial_path.unlink(missing_ok=True)
+    return seq_dir
+
+
+def _render_frames(recipe, town, seq_dir, todo, workers, quiet) -> None:
+    from mono_map.progress import progress
+
+    desc = f"synth {recipe.name}"
+    if workers == 1 or len(todo) == 1:
+        _init_worker(recipe, town, seq_dir, 0)
+        try:
+            for _ in progress(todo, total=len(todo), desc=desc, unit="frame") if not quiet else todo:
+                _render_and_write(_)
+        finally:
+            _WORKER.clear()
+        return
+    ctx = mp.get_context("spawn")
+    nproc = min(workers, len(todo))
+    with ctx.Pool(nproc, initializer=_init_worker, initargs=(recipe, town, str(seq_dir), 1)) as pool:
+        it = pool.imap_unordered(_render_and_write, todo, chunksize=1)
+        for _ in (progress(it, total=len(todo), desc=desc, unit="frame") if not quiet else it):
+            pass
+
+
+def ensure_sequence(root, name: str, frames: int | None = None) -> bool:
+    """Generate ``root/sequences/name`` from ``sequences/name.toml`` if missing or shorter than asked.
+
+    Returns True if it generated.  Never touches a directory without our marker (a real
+    KITTI sequence) and returns False for a name without a recipe.
+    """
+    root = Path(root)
+    path = recipe_path(name)
+    if not path.is_file():
+        return False
+    seq_dir = root / "sequences" / str(name)
+    marker = writer.read_marker(seq_dir)
+    partial = (seq_dir / writer.PARTIAL_MARKER).is_file()
+    if seq_dir.is_dir() and marker is None and not partial and any(seq_dir.iterdir()):
+        return False
+    recipe = load_recipe(path)
+    want = recipe.frames if frames is None else min(int(frames), recipe.frames)
+    if marker is not None and not partial and int(marker.get("n_frames", 0)) >= want:
+        return False
+    if marker is None:
+        print(f"sequence {name} not found under {root}: generating it from {_short(path)} ({want} frames)",
+              file=sys.stderr)
+    else:
+        print(f"sequence {name} under {root} has {marker.get('n_frames', 0)} frames: extending it to {want} "
+              f"from {_short(path)}", file=sys.stderr)
+    generate_sequence(recipe, root, frames=want)
+    return True
+
+
+def _short(path: Path) -> str:
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd()))
+    except ValueError:
+        return f"sequences/{Path(path).name}" if Path(path).parent.name == "sequences" else str(path)

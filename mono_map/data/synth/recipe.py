@@ -1,0 +1,182 @@
+"""Recipes of synthetic sequences: ``sequences/NAME.toml`` → a frozen :class:`Recipe`.
+
+A recipe fixes everything a sequence depends on: the real KITTI trajectory it drives
+(``trajectory``, sub-sampled by ``pose_stride`` from ``first_pose``), the number of
+frames, the random seed and the street layout.  Same recipe → byte-identical files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mono_map.errors import MonoMapError
+
+
+@dataclass(frozen=True)
+class StreetParams:
+    """Road cross-section (metres).  The car drives the centre of the right lane."""
+
+    lane_width: float = 3.5
+    parking_width: float = 2.3        # parking strip on each side of the two lanes
+    sidewalk_width: float = 3.0
+    curb_height: float = 0.15
+
+
+@dataclass(frozen=True)
+class BuildingParams:
+    density: float = 0.85             # probability that a frontage slot gets a building
+    height_min: float = 6.0           # metres
+    height_max: float = 16.0
+    width_min: float = 8.0
+    width_max: float = 20.0
+    depth_min: float = 8.0
+    depth_max: float = 14.0
+    setback_max: float = 3.0          # extra distance behind the sidewalk
+    glass_fraction: float = 0.6       # fraction of windows that are reflective glass (others curtained)
+    storefront_fraction: float = 0.3  # buildings with a glass shop front on the ground floor
+    brick_fraction: float = 0.4       # brick facades (others plaster)
+
+
+@dataclass(frozen=True)
+class CarParams:
+    density: float = 0.6              # fraction of the parking strips filled
+    black_fraction: float = 0.15      # black-painted cars/vans the LiDAR barely returns (paper Fig. 3)
+    van_fraction: float = 0.12        # box vans / small trucks among them
+
+
+@dataclass(frozen=True)
+class TreeParams:
+    spacing: float = 14.0             # metres between tree slots along each sidewalk
+    density: float = 0.6              # probability a slot gets a tree
+
+
+@dataclass(frozen=True)
+class PropParams:
+    pole_spacing: float = 30.0        # street-light poles, metres along each side
+    fence_fraction: float = 0.5       # probability a free frontage stretch gets a fence
+
+
+@dataclass(frozen=True)
+class LightParams:
+    sun_azimuth_deg: float = 40.0     # in the world x-z plane, from +z towards +x
+    sun_elevation_deg: float = 35.0
+    haze_distance: float = 220.0      # metres; transmittance exp(-d / haze_distance)
+    exposure: float = 1.0
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A synthetic sequence: trajectory + seed + layout.  ``frames`` is the full length."""
+
+    name: str
+    seed: int
+    frames: int
+    trajectory: str                   # real KITTI odometry trajectory (mono_map/data/kitti_assets/poses/XX.txt.gz)
+    pose_stride: int = 1              # frame i uses pose first_pose + i * pose_stride
+    first_pose: int = 0
+    description: str = ""
+    street: StreetParams = field(default_factory=StreetParams)
+    buildings: BuildingParams = field(default_factory=BuildingParams)
+    cars: CarParams = field(default_factory=CarParams)
+    trees: TreeParams = field(default_factory=TreeParams)
+    props: PropParams = field(default_factory=PropParams)
+    light: LightParams = field(default_factory=LightParams)
+    path: str = ""                    # where it was loaded from (not part of the hash)
+
+    def content_hash(self) -> str:
+        """sha256 (hex, 16 chars) of everything that changes the generated files."""
+        d = dataclasses.asdict(self)
+        d.pop("path")
+        d.pop("description")
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+_SECTIONS = {"street": StreetParams, "buildings": BuildingParams, "cars": CarParams,
+             "trees": TreeParams, "props": PropParams, "light": LightParams}
+
+
+def recipe_path(name_or_path: str | os.PathLike) -> Path:
+    """``"00"`` → ``recipes_dir()/00.toml``; a path to a ``.toml`` file is returned as is."""
+    from mono_map.paths import recipes_dir
+
+    s = str(name_or_path)
+    if s.endswith(".toml") or os.sep in s:
+        return Path(s)
+    return recipes_dir() / f"{s}.toml"
+
+
+def load_recipe(name_or_path: str | os.PathLike) -> Recipe:
+    """Load and validate a recipe by name (``sequences/NAME.toml``) or path."""
+    path = recipe_path(name_or_path)
+    if not path.is_file():
+        raise MonoMapError(f"{path}: no such recipe")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise MonoMapError(f"{path}: not valid TOML ({exc})") from None
+    return recipe_from_dict(data, path)
+
+
+def recipe_from_dict(data: dict, path: Path | str = "<recipe>") -> Recipe:
+    kwargs: dict = {}
+    top = {f.name: f for f in dataclasses.fields(Recipe)}
+    for key, value in data.items():
+        if key in _SECTIONS:
+            if not isinstance(value, dict):
+                raise MonoMapError(f"{path}: [{key}] must be a table")
+            kwargs[key] = _section(_SECTIONS[key], value, path, key)
+        elif key in top and key != "path":
+            kwargs[key] = value
+        else:
+            raise MonoMapError(f"{path}: unknown key '{key}'")
+    kwargs.setdefault("name", Path(path).stem)
+    for req in ("seed", "frames", "trajectory"):
+        if req not in kwargs:
+            raise MonoMapError(f"{path}: missing key '{req}'")
+    for key in ("seed", "frames", "pose_stride", "first_pose"):
+        if key in kwargs and (not isinstance(kwargs[key], int) or isinstance(kwargs[key], bool)):
+            raise MonoMapError(f"{path}: '{key}' must be an integer")
+    kwargs["trajectory"] = str(kwargs["trajectory"])
+    kwargs["name"] = str(kwargs["name"])
+    recipe = Recipe(path=str(path), **kwargs)
+    _validate(recipe, path)
+    return recipe
+
+
+def _section(cls, values: dict, path, section: str):
+    names = {f.name: f for f in dataclasses.fields(cls)}
+    out = {}
+    for key, value in values.items():
+        if key not in names:
+            raise MonoMapError(f"{path}: unknown key '{key}' in [{section}]")
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise MonoMapError(f"{path}: [{section}] {key} must be a number")
+        out[key] = float(value)
+    return cls(**out)
+
+
+def _validate(r: Recipe, path) -> None:
+    from mono_map.data.synth.trajectory import available_trajectories, trajectory_length
+
+    if r.trajectory not in available_trajectories():
+        raise MonoMapError(f"{path}: trajectory '{r.trajectory}' is not one of {sorted(available_trajectories())}")
+    if r.frames < 1 or r.pose_stride < 1 or r.first_pose < 0:
+        raise MonoMapError(f"{path}: frames and pose_stride must be >= 1 and first_pose >= 0")
+    last = r.first_pose + (r.frames - 1) * r.pose_stride
+    n = trajectory_length(r.trajectory)
+    if last >= n:
+        raise MonoMapError(f"{path}: frame {r.frames - 1} needs pose {last} but trajectory {r.trajectory} has {n} poses")
+    for name in ("density", "black_fraction", "van_fraction", "glass_fraction", "storefront_fraction",
+                 "brick_fraction", "fence_fraction"):
+        for sec in (r.buildings, r.cars, r.trees, r.props):
+            v = getattr(sec, name, None)
+            if v is not None and not 0.0 <= v <= 1.0:
+                raise MonoMapError(f"{path}: {name} must be in [0, 1], got {v}")
+    if r.buildings.height_min > r.buildings.height_max or r.buildings.width_min > r.buildings.width_max:
+        raise MonoMapError(f"{path}: [buildings] min must not exceed max")

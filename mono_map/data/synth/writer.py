@@ -1,0 +1,102 @@
+"""KITTI odometry layout on disk, written atomically (temp file + rename).
+
+root/sequences/XX/image_2/NNNNNN.png   RGB (stored BGR by OpenCV), 1241×376
+root/sequences/XX/depth_2/NNNNNN.png   dense z-depth of image_2, uint16 metres × 256, 0 = sky / none
+root/sequences/XX/velodyne/NNNNNN.bin  float32 x y z reflectance (velodyne frame)
+root/sequences/XX/calib.txt            real KITTI 00 calibration (P0..P3, Tr), copied verbatim
+root/sequences/XX/times.txt            seconds
+root/poses/XX.txt                      T_world_cam0, 3×4 row-major per line
+root/sequences/XX/synth.json           marker: recipe name + hash, n_frames, generator version (written last)
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mono_map.errors import MonoMapError
+from mono_map.io import atomic_path, write_json_atomic, write_text_atomic
+from mono_map.paths import KITTI_ASSETS_DIR
+
+MARKER = "synth.json"
+PARTIAL_MARKER = ".synth_partial.json"      # present while a generation is under way / was interrupted
+PNG_LEVEL = 2
+
+
+def calib_text() -> str:
+    return (KITTI_ASSETS_DIR / "calib_00.txt").read_text()
+
+
+def read_calib(text: str | None = None) -> dict[str, np.ndarray]:
+    """Parse KITTI odometry calib text: {'P0'..'P3': 3×4, 'Tr': 4×4 (velodyne → cam0)}."""
+    out = {}
+    for line in (text if text is not None else calib_text()).splitlines():
+        if ":" not in line:
+            continue
+        key, vals = line.split(":", 1)
+        out[key.strip()] = np.array([float(v) for v in vals.split()]).reshape(3, 4)
+    Tr = np.eye(4)
+    Tr[:3] = out["Tr"]
+    out["Tr"] = Tr
+    return out
+
+
+def frame_paths(seq_dir: Path, i: int) -> dict[str, Path]:
+    name = f"{i:06d}"
+    return {"image": seq_dir / "image_2" / f"{name}.png", "depth": seq_dir / "depth_2" / f"{name}.png",
+            "velodyne": seq_dir / "velodyne" / f"{name}.bin"}
+
+
+def frame_complete(seq_dir: Path, i: int) -> bool:
+    return all(p.is_file() for p in frame_paths(seq_dir, i).values())
+
+
+def write_frame(seq_dir: Path, i: int, rgb: np.ndarray, depth_m: np.ndarray, points: np.ndarray) -> None:
+    import cv2
+
+    from mono_map.data.depth_png import encode_depth
+
+    paths = frame_paths(seq_dir, i)
+    params = [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL]
+    with atomic_path(paths["image"]) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1]), params):
+            raise MonoMapError(f"{paths['image']}: could not write PNG")
+    with atomic_path(paths["depth"]) as tmp:
+        if not cv2.imwrite(str(tmp), encode_depth(depth_m), params):
+            raise MonoMapError(f"{paths['depth']}: could not write depth PNG")
+    with atomic_path(paths["velodyne"]) as tmp:
+        np.ascontiguousarray(points, dtype=np.float32).tofile(tmp)
+
+
+def write_sequence_files(root: Path, name: str, pose_lines: list[str], times: np.ndarray) -> None:
+    seq_dir = root / "sequences" / name
+    write_text_atomic(seq_dir / "calib.txt", calib_text())
+    write_text_atomic(seq_dir / "times.txt", "".join(f"{t:.6e}\n" for t in times))
+    write_text_atomic(root / "poses" / f"{name}.txt", "".join(line + "\n" for line in pose_lines))
+
+
+def remove_frames_from(seq_dir: Path, n: int) -> None:
+    """Delete frame files with index >= n (a shorter regeneration leaves no strays)."""
+    for sub, ext in (("image_2", ".png"), ("depth_2", ".png"), ("velodyne", ".bin")):
+        d = seq_dir / sub
+        if not d.is_dir():
+            continue
+        for p in d.iterdir():
+            if p.suffix == ext and p.stem.isdigit() and int(p.stem) >= n:
+                p.unlink()
+
+
+def read_marker(seq_dir: Path) -> dict | None:
+    p = seq_dir / MARKER
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return None
+
+
+def write_marker(seq_dir: Path, info: dict, partial: bool = False) -> None:
+    write_json_atomic(seq_dir / (PARTIAL_MARKER if partial else MARKER), info)

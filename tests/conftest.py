@@ -1,0 +1,15 @@
+"""Shared fixtures: the tiny synthetic sequence, generated once per test session."""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def tiny_root(tmp_path_factory):
+    """A KITTI odometry root holding the synthetic sequence ``tiny`` (6 frames, sequences/tiny.toml)."""
+    from mono_map.data.synth import generate_sequence, load_recipe
+
+    root = tmp_path_factory.mktemp("kitti_tiny")
+    generate_sequence(load_recipe("tiny"), root, workers=2, quiet=True)
+    return root

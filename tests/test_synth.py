@@ -1,0 +1,255 @@
+"""Synthetic KITTI world: format (pykitti), geometry consistency, road corridor, determinism, markers."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mono_map.data.synth import ensure_sequence, generate_sequence, load_recipe
+from mono_map.errors import MonoMapError
+
+H, W = 376, 1241
+
+
+@pytest.fixture(scope="module")
+def tiny_ds(tiny_root):
+    import pykitti
+
+    return pykitti.odometry(str(tiny_root), "tiny")
+
+
+def _frame_files(seq_dir: Path) -> list[Path]:
+    return sorted(p for sub in ("image_2", "depth_2", "velodyne") for p in (seq_dir / sub).iterdir())
+
+
+def test_pykitti_reads_tiny_sequence(tiny_root, tiny_ds):
+    from mono_map.data.synth.writer import read_calib
+
+    calib = read_calib()
+    ds = tiny_ds
+    assert len(ds.poses) == 6 and len(ds.timestamps) == 6
+    assert np.allclose(ds.calib.P_rect_20, calib["P2"])
+    assert np.allclose(ds.calib.T_cam0_velo, calib["Tr"])
+    img = np.array(ds.get_cam2(0))
+    assert img.shape == (H, W, 3) and img.dtype == np.uint8
+    assert img.std() > 10                                     # a picture, not a flat colour
+    velo = ds.get_velo(0)
+    assert velo.shape[1] == 4 and 60_000 < len(velo) < 160_000
+    assert 0.0 <= velo[:, 3].min() and velo[:, 3].max() <= 1.0
+    # poses are the real KITTI 00 poses 0, 3, 6, ... (stride 3)
+    from mono_map.data.synth.trajectory import load_poses
+
+    assert np.allclose(ds.poses[5], load_poses("00")[15], atol=1e-6)
+    marker = json.loads((tiny_root / "sequences/tiny/synth.json").read_text())
+    assert marker["n_frames"] == 6 and marker["recipe"] == "tiny"
+    assert marker["recipe_hash"] == load_recipe("tiny").content_hash()
+    assert not (tiny_root / "sequences/tiny/.synth_partial.json").exists()
+    assert len(list((tiny_root / "sequences/tiny/image_2").iterdir())) == 6
+
+
+def _velo_in_cam2(ds, i):
+    from mono_map.geometry import project_points, transform_points
+
+    velo = ds.get_velo(i)
+    pts = transform_points(ds.calib.T_cam2_velo, velo[:, :3])
+    uv, z = project_points(ds.calib.K_cam2, pts)
+    ok = (z > 1.0) & np.isfinite(uv[:, 0])
+    u = np.round(uv[ok, 0]).astype(int)
+    v = np.round(uv[ok, 1]).astype(int)
+    inside = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
+    return u[inside], v[inside], z[ok][inside]
+
+
+def test_lidar_agrees_with_dense_depth(tiny_root, tiny_ds):
+    from mono_map.data.depth_png import read_depth_png
+
+    rel_all = []
+    for i in range(0, 6, 2):
+        depth = read_depth_png(tiny_root / f"sequences/tiny/depth_2/{i:06d}.png")
+        assert depth.shape == (H, W)
+        assert (depth > 0).mean() > 0.5
+        u, v, z = _velo_in_cam2(tiny_ds, i)
+        # away from depth edges: the 3x3 neighbourhood varies < 3 %
+        pad = np.pad(depth, 1, mode="edge")
+        win = np.stack([pad[1 + dy:H + 1 + dy, 1 + dx:W + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+        smooth = (win.min(axis=0) > 0) & (win.max(axis=0) < 1.03 * win.min(axis=0))
+        keep = smooth[v, u]
+        d = depth[v, u][keep]
+        rel_all.append(np.abs(d - z[keep]) / z[keep])
+        assert keep.sum() > 5_000
+    rel = np.concatenate(rel_all)
+    print("lidar-vs-depth: median %.4f, within 5%% %.3f, n %d" % (np.median(rel), (rel < 0.05).mean(), len(rel)))
+    assert np.median(rel) < 0.02
+    assert (rel < 0.05).mean() > 0.90
+
+
+def test_camera_drives_on_the_road(tiny_ds):
+    """Consecutive poses are distinct; the ground 1.65 m below cam0 is road; the corridor ahead is free."""
+    from mono_map.data.synth import FrameRenderer
+    from mono_map.data.synth import materials as M
+    from mono_map.data.synth.camera import _cast
+    from mono_map.data.synth.town import build_town
+
+    poses = np.array(tiny_ds.poses)
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    assert (steps > 0.5).all()
+    recipe = load_recipe("tiny")
+    town = build_town(recipe)
+    fr = FrameRenderer(recipe, town, nthreads=1)
+    origins = poses[:, :3, 3].astype(np.float32)
+    down = poses[:, :3, 1].astype(np.float32)
+    ans = _cast(fr.scene, origins, down, 1)
+    assert np.allclose(ans["t_hit"], 1.65, atol=0.05)
+    prim = ans["primitive_ids"].astype(np.int64)
+    assert (town.tri_material[prim] == M.GROUND).all()
+    p = origins + ans["t_hit"][:, None] * down
+    s = M.surface(town, p, -down, prim, ans["primitive_uvs"])
+    assert np.isin(s.region, [0, 1]).all()                     # road asphalt or a marking
+    # LiDAR: returns 4-10 m ahead of the car within its width lie on the road, ~1.70 m below the velodyne
+    # (the real KITTI 00 road climbs ~3 % here and the camera looks ~2 degrees down, hence the tolerance)
+    for i in range(6):
+        velo = tiny_ds.get_velo(i)
+        box = (velo[:, 0] > 4) & (velo[:, 0] < 10) & (np.abs(velo[:, 1]) < 1.0)
+        assert box.sum() > 50
+        z = velo[box, 2]
+        assert abs(np.median(z) + 1.70) < 0.2 and z.max() < -1.3 and z.std() < 0.1
+
+
+def test_nothing_closer_than_2m_ahead(tiny_root, tiny_ds):
+    from mono_map.data.depth_png import read_depth_png
+    from mono_map.geometry import backproject_pixels
+
+    K = tiny_ds.calib.K_cam2
+    vv, uu = np.mgrid[0:H, 0:W]
+    for i in range(6):
+        depth = read_depth_png(tiny_root / f"sequences/tiny/depth_2/{i:06d}.png")
+        ok = depth > 0
+        pts = backproject_pixels(K, uu[ok], vv[ok], depth[ok])
+        corridor = (np.abs(pts[:, 0]) < 1.0) & (pts[:, 1] < 1.65 - 0.3)   # above the road, car-wide
+        assert corridor.any()
+        assert pts[corridor, 2].min() > 2.0
+
+
+def test_town_keeps_the_whole_corridor_clear():
+    """No object below 2.5 m height stands within 1.7 m (horizontally) of any road-path sample."""
+    from mono_map.data.synth import materials as M
+    from mono_map.data.synth.town import build_town
+    from mono_map.data.synth.trajectory import PathIndex, build_road_path, load_poses, town_pose_range
+
+    recipe = load_recipe("tiny")
+    town = build_town(recipe)
+    lo, hi = town_pose_range(recipe)
+    path = build_road_path(load_poses(recipe.trajectory)[lo:hi])
+    index = PathIndex(path, margin=70)
+    objects = ~np.isin(town.tri_material, [M.GROUND, M.CURB])
+    V = town.vertices[np.unique(town.triangles[objects])].astype(np.float64)
+    k, d = index.query(V[:, [0, 2]])
+    height = path.points[k, 1] - V[:, 1]
+    low = height < 2.5
+    assert low.sum() > 1000
+    assert d[low].min() > 1.7
+
+
+def test_barycentric_convention_of_raycasting():
+    """Interpolating vertices with RaycastingScene's uvs reproduces the hit point (ground attributes rely on it)."""
+    from mono_map.data.synth import FrameRenderer
+    from mono_map.data.synth.camera import _cast
+    from mono_map.data.synth.town import build_town
+
+    recipe = load_recipe("tiny")
+    town = build_town(recipe)
+    fr = FrameRenderer(recipe, town, nthreads=1)
+    rng = np.random.default_rng(0)
+    o = np.tile(fr.poses[0][:3, 3], (200, 1)).astype(np.float32)
+    d = rng.normal(size=(200, 3)).astype(np.float32)
+    d[:, 1] = np.abs(d[:, 1]) + 0.3
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ans = _cast(fr.scene, o, d, 1)
+    hit = np.isfinite(ans["t_hit"])
+    assert hit.sum() > 150
+    F = town.triangles[ans["primitive_ids"][hit]]
+    uv = ans["primitive_uvs"][hit]
+    Vt = town.vertices
+    interp = (1 - uv[:, :1] - uv[:, 1:]) * Vt[F[:, 0]] + uv[:, :1] * Vt[F[:, 1]] + uv[:, 1:] * Vt[F[:, 2]]
+    p = o[hit] + ans["t_hit"][hit, None] * d[hit]
+    assert np.abs(interp - p).max() < 1e-2
+
+
+def test_prefix_extension_and_determinism(tiny_root, tmp_path, capsys):
+    """ensure_sequence generates a missing prefix, extends it, and the result is byte-identical to a
+    one-shot generation with another worker count."""
+    root = tmp_path / "kitti"
+    assert ensure_sequence(root, "tiny", frames=3) is True
+    err = capsys.readouterr().err
+    assert "sequence tiny not found under" in err and "tiny.toml (3 frames)" in err
+    seq = root / "sequences/tiny"
+    assert len((root / "poses/tiny.txt").read_text().splitlines()) == 3
+    assert len((seq / "times.txt").read_text().splitlines()) == 3
+    assert len(list((seq / "image_2").iterdir())) == 3
+    assert json.loads((seq / "synth.json").read_text())["n_frames"] == 3
+    assert ensure_sequence(root, "tiny", frames=2) is False        # already long enough
+    assert ensure_sequence(root, "tiny", frames=6) is True         # extends 3 -> 6
+    assert ensure_sequence(root, "tiny") is False
+    ref = tiny_root / "sequences/tiny"
+    files = _frame_files(seq)
+    assert [p.name for p in files] == [p.name for p in _frame_files(ref)]
+    for p in files + [seq / "calib.txt", seq / "times.txt"]:
+        assert p.read_bytes() == (ref / p.relative_to(seq)).read_bytes(), p
+    assert (root / "poses/tiny.txt").read_bytes() == (tiny_root / "poses/tiny.txt").read_bytes()
+    m1 = json.loads((seq / "synth.json").read_text())
+    m2 = json.loads((ref / "synth.json").read_text())
+    m1.pop("seconds"), m2.pop("seconds")
+    assert m1 == m2
+
+
+def test_real_kitti_sequence_is_never_touched(tmp_path):
+    seq = tmp_path / "sequences" / "tiny"
+    (seq / "image_2").mkdir(parents=True)
+    (seq / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    before = sorted(p.name for p in seq.rglob("*"))
+    assert ensure_sequence(tmp_path, "tiny") is False
+    with pytest.raises(MonoMapError, match="not written by mono-map"):
+        generate_sequence(load_recipe("tiny"), tmp_path, quiet=True)
+    assert sorted(p.name for p in seq.rglob("*")) == before
+    assert ensure_sequence(tmp_path, "no_such_recipe_xyz") is False
+
+
+def test_recipe_errors(tmp_path):
+    good = Path(load_recipe("tiny").path).read_text()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(good + "\nbogus = 1\n")
+    with pytest.raises(MonoMapError, match="unknown key 'bogus'"):
+        load_recipe(bad)
+    bad.write_text(good.replace("frames = 6", "frames = 9999"))
+    with pytest.raises(MonoMapError, match="trajectory 00 has 4541 poses"):
+        load_recipe(bad)
+    bad.write_text(good.replace("black_fraction = 0.3", "black_fraction = 3"))
+    with pytest.raises(MonoMapError, match="black_fraction"):
+        load_recipe(bad)
+    with pytest.raises(MonoMapError, match="no such recipe"):
+        load_recipe("no_such_recipe_xyz")
+    with pytest.raises(MonoMapError, match="--frames"):
+        generate_sequence(load_recipe("tiny"), tmp_path, frames=7)
+
+
+def test_all_recipes_load():
+    from mono_map.paths import recipes_dir
+
+    names = sorted(p.stem for p in recipes_dir().glob("*.toml"))
+    assert {"00", "05", "06", "07", "08", "09", "10", "tiny"} <= set(names)
+    seeds = {load_recipe(n).seed for n in names}
+    assert len(seeds) == len(names)                               # every town differs
+    assert load_recipe("00").frames == 4541 and load_recipe("00").pose_stride == 1
+
+
+def test_cli_synth(tiny_root, capsys):
+    from mono_map.cli import main
+
+    assert main(["synth", "--seq", "tiny", "--data-root", str(tiny_root)]) == 0   # already there: no work
+    assert "sequence tiny: 6 frames" in capsys.readouterr().err
+    assert main(["synth", "--seq", "nope_xyz", "--data-root", str(tiny_root)]) == 2
+    assert "no such recipe" in capsys.readouterr().err
