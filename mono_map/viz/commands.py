@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from mono_map.errors import MonoMapError
+from mono_map.viz.rerun_stream import rerun_binary
 
 
 def register(subparsers) -> None:
@@ -40,22 +41,6 @@ def _check_rrd(path: Path) -> None:
         raise MonoMapError(f"{path}: not a readable rerun recording ({exc})") from None
     if not recordings:
         raise MonoMapError(f"{path}: rerun file holds no recording")
-
-
-def rerun_binary() -> str:
-    """Path of the rerun viewer/CLI binary bundled with rerun-sdk."""
-    try:
-        import rerun_cli
-
-        exe = Path(rerun_cli.__file__).parent / "rerun"
-        if exe.exists():
-            return str(exe)
-    except ImportError:  # pragma: no cover
-        pass
-    exe = shutil.which("rerun")
-    if exe is None:  # pragma: no cover
-        raise MonoMapError("view: the rerun viewer binary was not found (pip install rerun-sdk)")
-    return exe
 
 
 def screenshot(rrd: Path, png: Path, size: str = "1600x1000", timeout: float = 300.0) -> None:

@@ -193,6 +193,36 @@ def cells_archetype(idx: np.ndarray, resolution: float, style: str = "voxels",
                       fill_mode=rr.components.FillMode.Solid)
 
 
+def rerun_binary() -> str:
+    """Path of the rerun viewer/CLI binary bundled with rerun-sdk (the venv's bin may not be on PATH)."""
+    import shutil
+
+    try:
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).parent / "rerun"
+        if exe.exists():
+            return str(exe)
+    except ImportError:  # pragma: no cover
+        pass
+    exe = shutil.which("rerun")
+    if exe is None:  # pragma: no cover
+        raise MonoMapError("--viewer: the rerun viewer binary was not found (pip install rerun-sdk)")
+    return exe
+
+
+def spawn_viewer(port: int = 9876):
+    """Start a detached rerun viewer (or reuse one already listening on ``port``); return its sink."""
+    import rerun as rr
+    from rerun._spawn import _spawn_viewer
+
+    try:
+        _spawn_viewer(port=port, hide_welcome_screen=True, executable_path=rerun_binary())
+    except RuntimeError as exc:
+        raise MonoMapError(f"--viewer: could not start the rerun viewer ({str(exc).splitlines()[0]})") from None
+    return rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy")
+
+
 # --------------------------------------------------------------------------- image encoding
 
 
@@ -316,8 +346,7 @@ class RerunMapLogger:
             self._tmp_rrd = self.rrd.with_name(f".{self.rrd.name}.tmp")
             sinks.append(rr.FileSink(str(self._tmp_rrd)))
         if spawn:
-            rr.spawn(connect=False, hide_welcome_screen=True)
-            sinks.append(rr.GrpcSink())
+            sinks.append(spawn_viewer())
         self.rec.set_sinks(*sinks, default_blueprint=bp)
 
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
@@ -495,7 +524,7 @@ class RerunMapLogger:
 
             lo, hi = map_bounds(self.occupied_cells())
             self.rec.send_blueprint(default_blueprint(reference=self._has_reference, eye=eye_for_bounds(lo, hi)))
-        self.rec.flush()
+        self.rec.flush(timeout_sec=60.0)  # bounded: a closed live viewer must not hang the build
         self.rec.disconnect()
         if self._tmp_rrd is not None:
             import os
@@ -550,8 +579,7 @@ def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool =
         tmp = rrd.with_name(f".{rrd.name}.tmp")
         sinks.append(rr.FileSink(str(tmp)))
     if spawn:
-        rr.spawn(connect=False, hide_welcome_screen=True)
-        sinks.append(rr.GrpcSink())
+        sinks.append(spawn_viewer())
     if not sinks:
         raise MonoMapError("view: nothing to do (no --save and no viewer)")
     eye = eye_for_bounds(*map_bounds(centres)) if len(centres) else None
@@ -566,7 +594,7 @@ def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool =
         rec.log(f"world/map/occupied/b{bx}_{by}_{bz}", cells_archetype(idx[order[s0:s1]], res, cells, hrange, lut,
                                                                   np.array([bx, by, bz]) * block_cells),
                 static=True)
-    rec.flush()
+    rec.flush(timeout_sec=60.0)
     rec.disconnect()
     if tmp is not None:
         import os

@@ -1,0 +1,122 @@
+#!/usr/bin/env python
+"""Logging overhead of the rerun viewer stream, as a ratio measured in one run.
+
+Runs the same short ``build_map`` twice per repeat, alternating (plain, with
+``RerunMapLogger(rrd=...)``, plain, with, ...) so that load from other processes hits both
+alike, and reports  ratio = time(with --rrd) / time(plain)  (target ≤ 1.20), plus the recording's
+size per frame and what the logger sent (block re-logs, cells re-sent vs cells changed).
+
+    python tools/bench_viewer.py --seq 00 --frames 0:20 --source lidar-fov
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+class CountingObserver:
+    """Counts the cells a build reports as changed (to compare with what the logger re-sends)."""
+
+    def __init__(self):
+        self.added = self.freed = self.frames = 0
+
+    def __call__(self, u):
+        self.frames += 1
+        self.added += len(u.occupied_keys_changed)
+        self.freed += len(u.freed_keys_changed)
+
+
+def parse_frames(text: str) -> tuple[int, int]:
+    a, b = text.split(":")
+    return int(a), int(b)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seq", default="00")
+    ap.add_argument("--data-root", default=None)
+    ap.add_argument("--frames", default="0:20", help="a:b frame range (default 0:20)")
+    ap.add_argument("--source", default="lidar-fov", help="mono | lidar | lidar-fov (default lidar-fov)")
+    ap.add_argument("--keep", type=float, default=0.8)
+    ap.add_argument("--repeats", type=int, default=2, help="alternating pairs (default 2)")
+    ap.add_argument("--map-every", type=int, default=1)
+    ap.add_argument("--json", default=None, help="also write the results here")
+    args = ap.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(2)
+    from mono_map.data.kitti import open_sequence
+    from mono_map.mapping.build import build_map
+    from mono_map.paths import data_root
+    from mono_map.viz.rerun_stream import RerunMapLogger
+
+    a, b = parse_frames(args.frames)
+    seq = open_sequence(data_root(args.data_root), args.seq, frames=b)
+    frames = list(range(a, b))
+    os.environ.setdefault("MONO_MAP_PROGRESS", "0")
+
+    def run(with_rrd: bool, tmp: Path) -> tuple[float, dict]:
+        obs, info = [CountingObserver()], {}
+        logger = None
+        if with_rrd:
+            logger = RerunMapLogger(rrd=tmp / "bench.rrd", map_every=args.map_every)
+            obs.append(logger)
+        t0 = time.perf_counter()
+        build_map(seq, source=args.source, keep=args.keep, frames=frames, observers=obs)
+        if logger is not None:
+            logger.close()
+        dt = time.perf_counter() - t0
+        info["frames"] = obs[0].frames
+        info["cells_changed"] = obs[0].added + obs[0].freed
+        if logger is not None:
+            size = (tmp / "bench.rrd").stat().st_size
+            info.update(rrd_bytes=size, rrd_kb_per_frame=size / 1024 / max(obs[0].frames, 1),
+                        block_relogs=logger.blocks_logged, cells_sent=logger.cells_logged,
+                        block_entities=len(logger.block_entities), map_cells=logger.map_cells)
+        return dt, info
+
+    plain, logged, infos = [], [], []
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        run(False, tmp)  # warm-up: imports, model load, caches
+        for _ in range(args.repeats):
+            t, _ = run(False, tmp)
+            plain.append(t)
+            t, info = run(True, tmp)
+            logged.append(t)
+            infos.append(info)
+    ratio = sum(logged) / sum(plain)
+    info = infos[-1]
+    res = {
+        "seq": args.seq, "frames": args.frames, "source": args.source, "repeats": args.repeats,
+        "plain_s": plain, "with_rrd_s": logged, "ratio": ratio,
+        "plain_frames_per_s": info["frames"] / statistics.mean(plain),
+        **info,
+        "resend_factor": info["cells_sent"] / max(info["cells_changed"], 1),
+    }
+    print(f"build {args.seq} frames {args.frames} source {args.source}: "
+          f"plain {statistics.mean(plain):.2f} s, with --rrd {statistics.mean(logged):.2f} s "
+          f"-> ratio {ratio:.3f} (target <= 1.20)")
+    print(f"recording {info['rrd_bytes'] / 1e6:.2f} MB = {info['rrd_kb_per_frame']:.0f} KB/frame; "
+          f"{info['block_relogs']} block re-logs over {info['block_entities']} block entities, "
+          f"{info['cells_sent']} cells sent for {info['cells_changed']} changed "
+          f"(x{res['resend_factor']:.1f}); map {info['map_cells']} occupied cells")
+    if args.json:
+        from mono_map.io import write_json_atomic
+
+        write_json_atomic(args.json, res)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
