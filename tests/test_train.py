@@ -71,6 +71,20 @@ def test_sparse_downsample_keeps_nearest_point():
     assert out[0, 0] == 7.0 and out[1, 1] == 5.0 and out[0, 1] == 0.0 and out[1, 0] == 0.0
 
 
+def test_outputs_at_targets_equals_upsampling():
+    from mono_map.depth.train import outputs_at_targets
+
+    torch.manual_seed(0)
+    low = torch.randn(2, 5, 8, 26)
+    depth = torch.zeros(2, 32, 104)
+    depth[0, 3, 7], depth[0, 31, 103], depth[1, 0, 0], depth[1, 17, 50] = 5.0, 6.0, 7.0, 8.0
+    out, tgt = outputs_at_targets(low, depth)
+    up = torch.nn.functional.interpolate(low, size=(32, 104), mode="bilinear", align_corners=False)
+    expect = torch.stack([up[0, :, 3, 7], up[0, :, 31, 103], up[1, :, 0, 0], up[1, :, 17, 50]], -1)
+    torch.testing.assert_close(out[0, :, 0], expect, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(tgt[0, 0], torch.tensor([5.0, 6.0, 7.0, 8.0]))
+
+
 def test_batches_are_seeded_and_augmented_in_range():
     images, depths = _data()
     a = sample_batch(images, depths, 3, (32, 64), np.random.default_rng([0, 0, 5]), True)

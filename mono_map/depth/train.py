@@ -30,8 +30,8 @@ HELD_OUT = {"00"}
 class DataConfig:
     root: str | None = None                          # KITTI root (None -> mono_map.paths.data_root)
     sequences: tuple = ("05", "06", "07", "08", "09", "10")
-    frame_step: int = 4                              # use every n-th frame
-    max_frames: int = 0                              # per sequence, 0 = all
+    frames: int = 0                                  # leading frames of each sequence (0 = all; generated if missing)
+    frame_step: int = 1                              # use every n-th of them
     target: str = "lidar"                            # "lidar" (velodyne into image_2) or "dense" (depth_2 PNGs)
     cache_dir: str = "data/cache"
 
@@ -143,23 +143,20 @@ def build_cache(cfg: RunConfig, model_cfg) -> tuple[np.ndarray, np.ndarray, Path
 
     d = cfg.data
     root = data_root(d.root)
-    key = json.dumps({"root": str(root.resolve()), "seqs": list(d.sequences), "step": d.frame_step,
-                      "max": d.max_frames, "target": d.target,
+    jobs = []
+    for name in d.sequences:
+        seq = open_sequence(root, str(name), frames=d.frames or None)
+        n = min(len(seq), d.frames) if d.frames else len(seq)
+        jobs += [(seq, i) for i in range(0, n, d.frame_step)]
+    if not jobs:
+        raise MonoMapError(f"{cfg.source}: no training frames selected")
+    key = json.dumps({"root": str(root.resolve()), "jobs": [(s.name, i) for s, i in jobs], "target": d.target,
                       "size": [model_cfg.input_height, model_cfg.input_width]}, sort_keys=True)
     tag = hashlib.sha1(key.encode()).hexdigest()[:10]
     cache_dir = Path(d.cache_dir)
     img_path, dep_path = cache_dir / f"depth_train_{tag}_images.npy", cache_dir / f"depth_train_{tag}_depths.npy"
     if img_path.is_file() and dep_path.is_file():
         return np.load(img_path, mmap_mode="r"), np.load(dep_path, mmap_mode="r"), cache_dir
-    jobs = []
-    for name in d.sequences:
-        seq = open_sequence(root, str(name))
-        idx = list(range(0, len(seq), d.frame_step))
-        if d.max_frames:
-            idx = idx[: d.max_frames]
-        jobs += [(seq, i) for i in idx]
-    if not jobs:
-        raise MonoMapError(f"{cfg.source}: no training frames selected")
     images, depths = [], []
     for seq, i in progress(jobs, total=len(jobs), desc="caching training frames", unit="frame"):
         img = seq.image(i)
@@ -206,6 +203,32 @@ def sample_batch(images, depths, batch: int, crop: tuple, rng: np.random.Generat
         xs[b] = img.transpose(2, 0, 1)
         ys[b] = dep
     return xs, ys
+
+
+def outputs_at_targets(low, depth):
+    """Bilinearly sample stride-4 score maps (B,C,h,w) at the pixels with a target in depth (B,H,W).
+
+    Identical to up-sampling the score maps to H×W (bilinear, align_corners=False, as inference does)
+    and reading the valid pixels, at a fraction of the cost for sparse LiDAR targets.
+    Returns (1,C,1,N) outputs and (1,1,N) depths for ``head_loss``.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    B, H, W = depth.shape
+    outs, deps = [], []
+    for b in range(B):
+        v, u = torch.nonzero(depth[b] > 0, as_tuple=True)
+        if v.numel() == 0:
+            continue
+        gx = (2 * u.to(low.dtype) + 1) / W - 1
+        gy = (2 * v.to(low.dtype) + 1) / H - 1
+        grid = torch.stack([gx, gy], -1).view(1, 1, -1, 2)
+        outs.append(F.grid_sample(low[b:b + 1], grid, mode="bilinear", padding_mode="border", align_corners=False))
+        deps.append(depth[b, v, u])
+    if not outs:  # no target at all: a zero loss that still touches the graph
+        return low[:, :, :1, :1], torch.zeros_like(depth[:, :1, :1])
+    return torch.cat(outs, -1), torch.cat(deps).view(1, 1, -1)
 
 
 # ------------------------------------------------------------------ distributed
@@ -283,7 +306,8 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
         rng = np.random.default_rng([t.seed, rank, step])
         x, y = sample_batch(images, depths, t.batch_size, t.crop, rng, t.augment)
         x, y = torch.from_numpy(x).to(device), torch.from_numpy(y).to(device)
-        loss = head_loss(model.head, model_ddp(x), y, mcfg.bins)
+        out, tgt = outputs_at_targets(model_ddp(x, upsample=False), y)
+        loss = head_loss(model.head, out, tgt, mcfg.bins)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
