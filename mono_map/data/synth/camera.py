@@ -135,7 +135,7 @@ def shade(scene, town, light: Lighting, origins: np.ndarray, dirs: np.ndarray, n
         # glass: trace the reflected ray; glossy paint / metal: reflect the sky (and a dim ground below it)
         rcol = light.sky(rdir)
         rcol = np.where((rdir[:, 1] > 0)[:, None], 0.35 * light.horizon[None, :], rcol)
-        traced = np.nonzero(surf.mirror[mi] >= 0.2)[0]
+        traced = np.nonzero(surf.mirror[mi] >= 0.5)[0]
         if len(traced):
             tm = mi[traced]
             rcol[traced], _, _ = shade(scene, town, light, p[tm] + n[tm] * 0.03, rdir[traced], nthreads, bounce=False)

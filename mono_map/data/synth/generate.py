@@ -18,10 +18,10 @@ import numpy as np
 from mono_map.config import KITTI_IMAGE_HEIGHT, KITTI_IMAGE_WIDTH
 from mono_map.data.synth import writer
 from mono_map.data.synth.recipe import Recipe, load_recipe, recipe_path
-from mono_map.data.synth.trajectory import frame_pose_indices, load_poses, pose_lines
+from mono_map.data.synth.trajectory import frame_pose_indices, frame_pose_lines, frame_poses
 from mono_map.errors import MonoMapError
 
-GENERATOR_VERSION = "1"
+GENERATOR_VERSION = "2"
 FRAME_PERIOD = 0.1          # seconds between consecutive real poses (KITTI records at 10 Hz)
 
 
@@ -47,7 +47,7 @@ class FrameRenderer:
         self.camera = PinholeCamera(self.K2, KITTI_IMAGE_HEIGHT, KITTI_IMAGE_WIDTH)
         self.light = Lighting.from_recipe(recipe.light)
         self.lidar_dirs = ray_directions()
-        self.poses = load_poses(recipe.trajectory)[frame_pose_indices(recipe)]
+        self.poses = frame_poses(recipe)
 
     def render(self, i: int):
         """(rgb H×W×3 uint8, depth H×W float32 metres, velodyne (M, 4) float32) of frame i."""
@@ -138,11 +138,10 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
         _render_frames(recipe, town, seq_dir, todo, workers, quiet)
     if fresh:
         writer.remove_frames_from(seq_dir, n)
-    idx = frame_pose_indices(recipe)[:n]
     n_keep = max(n, marker.get("n_frames", 0) if (marker and current and not fresh) else n)
     idx = frame_pose_indices(recipe)[:n_keep]
     times = (idx - recipe.first_pose) * FRAME_PERIOD
-    writer.write_sequence_files(root, recipe.name, pose_lines(recipe.trajectory, idx), times)
+    writer.write_sequence_files(root, recipe.name, frame_pose_lines(recipe, n_keep), times)
     info = marker_info(recipe, n_keep)
     info["seconds"] = round(time.perf_counter() - t0, 2)
     writer.write_marker(seq_dir, info)

@@ -15,7 +15,7 @@ import numpy as np
 
 from mono_map.data.synth import materials as M
 from mono_map.data.synth.meshes import MeshBuilder, blob, box, cylinder
-from mono_map.data.synth.trajectory import PathIndex, RoadPath, build_road_path, load_poses, town_pose_range
+from mono_map.data.synth.trajectory import PathIndex, RoadPath, build_road_path, town_poses
 
 GROUND_RADIUS = 60.0      # metres of ground kept around the road path
 GROUND_RES = 1.0          # ground grid spacing, metres
@@ -101,9 +101,8 @@ def _footprint_samples(center, f, r, half_len, half_wid, step=0.5):
 def build_town(recipe) -> Town:
     """Deterministic town for a recipe (depends on nothing else)."""
     rng = np.random.default_rng([recipe.seed, 7])
-    poses = load_poses(recipe.trajectory)
-    lo, hi = town_pose_range(recipe)
-    path = build_road_path(poses[lo:hi])
+    _, poses = town_poses(recipe)
+    path = build_road_path(poses)
     index = PathIndex(path, margin=GROUND_RADIUS + 5.0)
     occ = _Occupancy(index)
     mb = MeshBuilder()
@@ -446,9 +445,10 @@ def _add_fences(mb, objs, occ, path, index, rng, recipe, side, edge, counts):
                 r = np.cross([0.0, 1.0, 0.0], f)
                 mid = (a + b) / 2
                 pts = np.stack([a, mid, b])[:, [0, 2]]
-                if not _clear(index, pts, edge + st.sidewalk_width - 0.3) or not occ.free(pts):
+                inner = np.stack([0.75 * a + 0.25 * b, mid, 0.25 * a + 0.75 * b])[:, [0, 2]]
+                if not _clear(index, pts, edge + st.sidewalk_width - 0.3) or not occ.free(inner):
                     continue
-                occ.mark(pts)
+                occ.mark(inner)
                 if oid is None:
                     oid = objs.add(color)
                     counts["fences"] += 1

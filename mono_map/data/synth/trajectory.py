@@ -33,10 +33,9 @@ def trajectory_length(trajectory: str) -> int:
     return len(_pose_lines(trajectory))
 
 
-def pose_lines(trajectory: str, indices: np.ndarray) -> list[str]:
-    """The original text lines (KITTI format) of the given pose indices."""
-    lines = _pose_lines(trajectory)
-    return [lines[int(i)] for i in indices]
+def frame_pose_lines(recipe, n: int) -> list[str]:
+    """Lines of poses/XX.txt for the first n frames (KITTI format, 12 numbers)."""
+    return [format_pose_line(T) for T in frame_poses(recipe)[:n]]
 
 
 @functools.lru_cache(maxsize=16)
@@ -64,6 +63,71 @@ def town_pose_range(recipe, margin_m: float = 120.0) -> tuple[int, int]:
     lo = int(np.searchsorted(arc, arc[idx[0]] - margin_m))
     hi = int(np.searchsorted(arc, arc[idx[-1]] + margin_m, side="right"))
     return max(lo, 0), min(max(hi, idx[-1] + 1), len(poses))
+
+
+def height_corrections(ground: np.ndarray, radius: float = 3.0, same_pass_arc: float = 30.0,
+                       smooth_m: float = 8.0) -> np.ndarray:
+    """Vertical offsets (N,) that make revisits of the same street agree in height.
+
+    Real KITTI ground truth drifts in height between passes (up to ~1 m in 00, more in 08);
+    a town has one road surface, so where other passes run within ``radius`` metres a ground
+    point moves to the mean height of all passes there (consensus minus its own pass's
+    local mean, so slopes and path ends add no bias), then offsets are smoothed along the
+    path.  Poses without a revisit keep their height exactly (offset 0).
+    """
+    xz = ground[:, [0, 2]]
+    y = ground[:, 1]
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(ground, axis=0), axis=1))])
+    cells = np.floor(xz / radius).astype(np.int64)
+    buckets: dict[tuple[int, int], list[int]] = {}
+    for i, (a, b) in enumerate(cells):
+        buckets.setdefault((int(a), int(b)), []).append(i)
+    buckets_np = {k: np.array(v) for k, v in buckets.items()}
+    delta = np.zeros(len(y))
+    for i, (a, b) in enumerate(cells):
+        cand = [buckets_np[k] for k in ((a + da, b + db) for da in (-1, 0, 1) for db in (-1, 0, 1)) if k in buckets_np]
+        j = np.concatenate(cand)
+        j = j[np.linalg.norm(xz[j] - xz[i], axis=1) < radius]
+        own = np.abs(arc[j] - arc[i]) <= same_pass_arc
+        if own.all():
+            continue
+        delta[i] = y[j].mean() - y[j[own]].mean() if own.any() else y[j].mean() - y[i]
+    if np.any(delta):
+        # Gaussian smoothing along the arc length
+        step = max(np.median(np.diff(arc)), 1e-3)
+        sig = smooth_m / step
+        k = np.arange(-int(3 * sig), int(3 * sig) + 1)
+        w = np.exp(-0.5 * (k / sig) ** 2)
+        pad = np.pad(delta, len(k) // 2, mode="edge")
+        delta = np.convolve(pad, w / w.sum(), mode="valid")
+    return delta
+
+
+def format_pose_line(T: np.ndarray) -> str:
+    return " ".join(f"{v:.9e}" for v in T[:3, :4].ravel())
+
+
+@functools.lru_cache(maxsize=8)
+def _town_poses(trajectory: str, lo: int, hi: int) -> np.ndarray:
+    P = load_poses(trajectory)[lo:hi].copy()
+    for _ in range(3):                       # a few rounds: passes converge to one surface
+        P[:, 1, 3] += height_corrections(ground_points(P))
+    # round-trip through the text written to poses/XX.txt so rendering uses exactly the file's values
+    P[:, :3, :4] = np.array([[float(v) for v in format_pose_line(T).split()] for T in P]).reshape(-1, 3, 4)
+    P.setflags(write=False)
+    return P
+
+
+def town_poses(recipe) -> tuple[int, np.ndarray]:
+    """(lo, poses) of the town's pose range, heights made consistent across revisits (T_world_cam0)."""
+    lo, hi = town_pose_range(recipe)
+    return lo, _town_poses(recipe.trajectory, lo, hi)
+
+
+def frame_poses(recipe) -> np.ndarray:
+    """T_world_cam0 of every frame of the recipe (recipe.frames, 4, 4), as written to poses/XX.txt."""
+    lo, P = town_poses(recipe)
+    return P[frame_pose_indices(recipe) - lo]
 
 
 @dataclass

@@ -22,7 +22,7 @@ from mono_map.paths import KITTI_ASSETS_DIR
 
 MARKER = "synth.json"
 PARTIAL_MARKER = ".synth_partial.json"      # present while a generation is under way / was interrupted
-PNG_LEVEL = 2
+PNG_LEVEL = 1
 
 
 def calib_text() -> str:
