@@ -10,7 +10,8 @@ import pytest
 
 from mono_map.cli import main as cli_main
 from mono_map.errors import MonoMapError
-from mono_map.viz.rerun_stream import RerunMapLogger, cell_indices, pack, unpack
+from mono_map.viz.rerun_stream import (RerunMapLogger, cell_indices, map_cells_at, pack, read_recording, unpack,
+                                       voxel_cells)
 
 RES = 0.2
 H, W = 24, 80
@@ -18,46 +19,6 @@ K = np.array([[60.0, 0.0, 40.0], [0.0, 60.0, 12.0], [0.0, 0.0, 1.0]])
 
 
 # ----------------------------------------------------------------------------- helpers
-
-
-def read_recording(path):
-    """Return {entity_path: [(frame or None, record-batch row dict)]} using rerun's RrdReader."""
-    from rerun.chunk import RrdReader
-
-    rows = defaultdict(list)
-    for chunk in RrdReader(path).stream():
-        rb = chunk.to_record_batch()
-        cols = {n: rb.column(n).to_pylist() for n in rb.schema.names if n != "rerun.controls.RowId"}
-        for i in range(rb.num_rows):
-            frame = cols["frame"][i] if "frame" in cols else None
-            rows[chunk.entity_path].append((frame, {k: v[i] for k, v in cols.items()}))
-    return rows
-
-
-def map_cells_at(rows, frame):
-    """Occupied cell indices shown at ``frame``: latest-at value of each map block entity."""
-    cells = set()
-    for path, entries in rows.items():
-        if not path.startswith("/world/map/occupied/"):
-            continue
-        past = [e for f, e in sorted((r for r in entries if r[0] is not None), key=lambda r: r[0]) if f <= frame]
-        if not past:
-            continue
-        last = past[-1]
-        if last.get("VoxelGridMap:voxel_indices") is not None:
-            cells |= voxel_cells(last)
-        else:
-            assert last.get("Clear:is_recursive") is not None, f"{path}: neither voxels nor a clear"
-    return cells
-
-
-def voxel_cells(row):
-    """Absolute cell indices of a VoxelGridMap row (indices are relative to its translation)."""
-    idx = np.asarray(row["VoxelGridMap:voxel_indices"], dtype=np.int64).reshape(-1, 3)
-    t = row.get("VoxelGridMap:translation")
-    if t is not None:
-        idx = idx + np.round(np.asarray(t[0]) / RES).astype(np.int64)
-    return {tuple(v) for v in idx.tolist()}
 
 
 def centres(cells):
@@ -144,7 +105,7 @@ def test_logger_writes_incremental_map_that_reads_back(tmp_path):
 
     # The union of block entities, latest-at, equals the true map after every frame.
     for i in range(n):
-        assert map_cells_at(rows, i) == expected[i], f"map differs after frame {i}"
+        assert map_cells_at(rows, i, RES) == expected[i], f"map differs after frame {i}"
     # Untouched blocks are not re-sent: the far block has rows only at frames 0 and 3 (clear).
     far = [p for p in paths if p.startswith("/world/map/occupied/b12_-1_18")]
     assert far == ["/world/map/occupied/b12_-1_18"]
@@ -167,8 +128,8 @@ def test_logger_map_every_batches_and_close_flushes(tmp_path):
     rows = read_recording(rrd)
     map_frames = {f for p, es in rows.items() if p.startswith("/world/map/") for f, _ in es}
     assert map_frames == {1, 3, 4}  # every 2nd frame, plus the final flush at the last frame
-    assert map_cells_at(rows, 4) == expected[-1]
-    assert map_cells_at(rows, 1) == expected[1]
+    assert map_cells_at(rows, 4, RES) == expected[-1]
+    assert map_cells_at(rows, 1, RES) == expected[1]
 
 
 def test_logger_without_depth_or_images_and_with_reference_map(tmp_path, small_bt):
@@ -184,7 +145,7 @@ def test_logger_without_depth_or_images_and_with_reference_map(tmp_path, small_b
     assert "/frame/depth" not in rows and "/frame/entropy" not in rows
     ref = rows["/world/reference_map"]
     assert len(ref) == 1 and ref[0][0] is None  # static
-    assert voxel_cells(ref[0][1]) == cells
+    assert voxel_cells(ref[0][1], RES) == cells
     assert logger.reference_cells == len(cells)
 
 
@@ -239,7 +200,7 @@ def test_view_bt_save_writes_valid_rrd(tmp_path, small_bt, capsys):
     for p, es in rows.items():
         if p.startswith("/world/map/occupied/"):
             assert len(es) == 1 and es[0][0] is None  # static
-            got |= voxel_cells(es[0][1])
+            got |= voxel_cells(es[0][1], RES)
     assert got == cells  # pruned nodes expanded back to finest cells, nothing lost or invented
     assert "/world" in rows
     assert f"{len(cells)} occupied cells" in capsys.readouterr().err
@@ -271,3 +232,16 @@ def test_view_bad_paths_give_one_line_errors(tmp_path, case, small_bt, capsys):
     named = "o.png" if case == "bad_save" else target.name
     assert named in err
     assert not (tmp_path / "o.rrd").exists()
+
+
+def test_close_during_an_exception_discards_the_recording(tmp_path):
+    """build_map closes observers in `finally`: a failing build must not leave a partial .rrd."""
+    rrd = tmp_path / "failed.rrd"
+    logger = RerunMapLogger(rrd=rrd)
+    logger(make_update(0, {(0, 0, 0)}, set(), np.random.default_rng(4)))
+    with pytest.raises(ValueError):
+        try:
+            raise ValueError("frame 1: empty frame")
+        finally:
+            logger.close()
+    assert not rrd.exists() and not list(tmp_path.iterdir())

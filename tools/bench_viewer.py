@@ -70,11 +70,9 @@ def main(argv=None) -> int:
         logger = None
         if with_rrd:
             logger = RerunMapLogger(rrd=tmp / "bench.rrd", map_every=args.map_every)
-            obs.append(logger)
+            obs.append(logger)  # build_map closes its observers (the .rrd is complete on return)
         t0 = time.perf_counter()
-        build_map(seq, source=args.source, keep=args.keep, frames=frames, observers=obs)
-        if logger is not None:
-            logger.close()
+        build_map(seq, source=args.source, keep=args.keep, frames=frames, observers=obs, show_progress=False)
         dt = time.perf_counter() - t0
         info["frames"] = obs[0].frames
         info["cells_changed"] = obs[0].added + obs[0].freed

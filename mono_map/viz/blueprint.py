@@ -22,7 +22,7 @@ def eye_for_bounds(lo, hi) -> tuple[list[float], list[float]]:
     lo, hi = [float(v) for v in lo], [float(v) for v in hi]
     cx, cz = (lo[0] + hi[0]) / 2, (lo[2] + hi[2]) / 2
     ext = max(hi[0] - lo[0], hi[2] - lo[2], 10.0)
-    return [cx, GROUND_Y - 0.7 * ext, cz - 0.75 * ext], [cx, GROUND_Y, cz]
+    return [cx, GROUND_Y - 0.45 * ext, cz - 0.55 * ext], [cx, GROUND_Y, cz]
 
 
 def default_blueprint(reference: bool = False, frames: bool = True,

@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -267,7 +268,9 @@ class RerunMapLogger:
       frame's logged end points; trajectory_block: frames per trajectory segment entity;
       entropy_max: top of the entropy colour scale (nats; default ln 64, the 64-bin maximum);
       jpeg_quality: of image_2 and the entropy picture; aux_scale: size of the depth, entropy and
-      mask pictures relative to image_2 (they fill quarter-width panels; 0.5 quarters their cost).
+      mask pictures relative to image_2 (they fill quarter-width panels; 0.5 quarters their cost);
+      image_size: (H, W) of image_2 for the camera frustum when updates carry no image (LiDAR
+      sources; default: twice the principal point); flush_s: seconds of rows batched per chunk.
     """
 
     def __init__(
@@ -287,6 +290,7 @@ class RerunMapLogger:
         jpeg_quality: int = 85,
         aux_scale: float = 0.5,
         flush_s: float = 2.0,
+        image_size: tuple[int, int] | None = None,
         recording_name: str | None = None,
         blueprint: bool = True,
     ) -> None:
@@ -313,6 +317,7 @@ class RerunMapLogger:
             raise MonoMapError(f"aux_scale: must be in (0, 1] (got {aux_scale})")
         self.aux_scale = float(aux_scale)
         self.rrd = Path(rrd) if rrd is not None else None
+        self.image_size = tuple(image_size) if image_size is not None else None
 
         ref_idx = None
         if reference_map is not None:
@@ -406,8 +411,12 @@ class RerunMapLogger:
         T = np.asarray(u.T_world_cam2, dtype=np.float64)
         self.rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
         K = np.asarray(u.K, dtype=np.float64)
-        hw = u.image.shape[:2] if u.image is not None else (
-            u.depth.shape if u.depth is not None else (int(round(2 * K[1, 2])), int(round(2 * K[0, 2]))))
+        if u.image is not None:
+            hw = u.image.shape[:2]
+        elif u.depth is not None:
+            hw = u.depth.shape
+        else:
+            hw = self.image_size or (int(round(2 * K[1, 2])), int(round(2 * K[0, 2])))
         key = (K.tobytes(), tuple(hw))
         if key != self._pinhole_logged:  # intrinsics are constant: log once (re-log if they change)
             self.rec.log("world/camera", rr.Pinhole(image_from_camera=K, resolution=[hw[1], hw[0]],
@@ -513,8 +522,15 @@ class RerunMapLogger:
     # ----------------------------------------------------------------- end
 
     def close(self) -> None:
-        """Flush the last dirty blocks, finish the recording and move it into place."""
+        """Flush the last dirty blocks, finish the recording and move it into place.
+
+        Called while an exception propagates (``build_map`` closes its observers in ``finally``),
+        it discards the recording instead: a failed build leaves no partial ``.rrd``.
+        """
         if self._closed:
+            return
+        if sys.exc_info()[0] is not None:
+            self.abort()
             return
         self._flush_map()
         self._closed = True
@@ -602,3 +618,43 @@ def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool =
         os.replace(tmp, rrd)
     return {"cells": int(len(idx)), "blocks": int(len(ub)), "resolution": res,
             "height_range": hrange}
+
+
+# --------------------------------------------------------------------------- reading recordings back
+
+
+def read_recording(path: str | Path) -> dict[str, list[tuple[int | None, dict]]]:
+    """Rows of an ``.rrd`` via rerun's own reader: {entity path: [(frame or None if static, {column: value})]}."""
+    from collections import defaultdict
+
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, list] = defaultdict(list)
+    for chunk in RrdReader(path).stream():
+        rb = chunk.to_record_batch()
+        cols = {n: rb.column(n).to_pylist() for n in rb.schema.names if n != "rerun.controls.RowId"}
+        for i in range(rb.num_rows):
+            frame = cols["frame"][i] if "frame" in cols else None
+            rows[chunk.entity_path].append((frame, {k: v[i] for k, v in cols.items()}))
+    return dict(rows)
+
+
+def voxel_cells(row: dict, resolution: float) -> set[tuple[int, int, int]]:
+    """Absolute cell indices of one ``VoxelGridMap`` row (its indices are relative to its translation)."""
+    idx = np.asarray(row["VoxelGridMap:voxel_indices"], dtype=np.int64).reshape(-1, 3)
+    t = row.get("VoxelGridMap:translation")
+    if t is not None:
+        idx = idx + np.round(np.asarray(t[0]) / resolution).astype(np.int64)
+    return {tuple(v) for v in idx.tolist()}
+
+
+def map_cells_at(rows: dict, frame: int, resolution: float) -> set[tuple[int, int, int]]:
+    """Occupied cells a viewer shows at ``frame``: the latest-at value of every map block entity."""
+    cells: set = set()
+    for path, entries in rows.items():
+        if not path.startswith("/world/map/occupied/"):
+            continue
+        past = [e for f, e in sorted((r for r in entries if r[0] is not None), key=lambda r: r[0]) if f <= frame]
+        if past and past[-1].get("VoxelGridMap:voxel_indices") is not None:
+            cells |= voxel_cells(past[-1], resolution)
+    return cells
