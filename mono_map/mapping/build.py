@@ -1,0 +1,222 @@
+"""Build an OctoMap from a sequence: monocular depth (uncertainty-selected) or LiDAR.
+
+Per frame (paper, Sec. "Mapping"): predict the depth distribution of image_2, take its expected
+depth and entropy, keep the ``keep`` fraction of valid pixels with the lowest entropy, back-project
+them with K2 and the pose ``T_world_cam2``, and integrate them into the OctoMap with the camera
+centre as sensor origin (free cells along the rays, occupied at the end points). LiDAR sources use
+the velodyne scans (``lidar-fov``: only points inside image_2's view) with the velodyne centre as
+origin. Integration is the exact batched path of :mod:`mono_map.mapping.integrate`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from mono_map.config import BinConfig, OctoMapConfig
+from mono_map.errors import MonoMapError
+from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.points import camera_origin, pixels_to_world
+from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
+from mono_map.mapping.select import check_keep, select_pixels
+
+SOURCES = ("mono",) + LIDAR_SOURCES
+DEFAULT_FRAMES = 500
+
+
+@dataclass
+class FrameUpdate:
+    """Emitted once per integrated frame (world = first cam0 frame, metres)."""
+
+    index: int
+    time: float
+    image: np.ndarray | None          # H×W×3 uint8 RGB (image_2)
+    depth: np.ndarray | None          # H×W float32 metres (predicted expected depth; None for LiDAR)
+    entropy: np.ndarray | None        # H×W float32 nats
+    keep_mask: np.ndarray | None      # H×W bool, pixels kept
+    K: np.ndarray                     # 3×3
+    T_world_cam2: np.ndarray          # 4×4
+    points_world: np.ndarray          # (N, 3) float64 end points inserted this frame
+    origin: np.ndarray                # (3,) sensor origin
+    occupied_keys_changed: np.ndarray  # (M, 3) centres of cells that became occupied this frame
+    freed_keys_changed: np.ndarray     # (F, 3) centres of cells that stopped being occupied this frame
+    stats: dict = field(default_factory=dict)
+
+
+@dataclass
+class BuildResult:
+    tree: object                      # octomap.OcTree (probabilistic, before any .bt write)
+    stats: dict
+    per_frame: list[dict]
+    integrator: MapIntegrator
+
+
+def parse_frames(spec: str | None, n_total: int, default: int = DEFAULT_FRAMES) -> tuple[range, str]:
+    """``--frames`` → (range of frame indices, human description).
+
+    None → the first ``default`` frames; "all" → every frame; "a:b" → frames a..b-1 (either side
+    may be empty); "n" → the first n frames.
+    """
+    if spec is None:
+        stop = min(default, n_total)
+        return range(0, stop), f"frames 0:{stop} (default: the first {default} frames; --frames all for the whole sequence)"
+    s = str(spec).strip()
+    if s == "all":
+        return range(0, n_total), f"all {n_total} frames"
+    try:
+        if ":" in s:
+            a, b = s.split(":", 1)
+            start = int(a) if a.strip() else 0
+            stop = int(b) if b.strip() else n_total
+        else:
+            start, stop = 0, int(s)
+    except ValueError:
+        raise MonoMapError(f"--frames: expected 'a:b', 'n' or 'all', got {spec!r}") from None
+    if start < 0 or stop > n_total or start >= stop:
+        raise MonoMapError(f"--frames: {spec!r} is not a non-empty range within the sequence's {n_total} frames")
+    return range(start, stop), f"frames {start}:{stop}"
+
+
+def _close(observers: Iterable) -> None:
+    for obs in observers:
+        close = getattr(obs, "close", None)
+        if callable(close):
+            close()
+
+
+def _predict(predictor, seq, i: int, image: np.ndarray):
+    """Predictors with ``predict_frame(seq, i, image)`` (e.g. the ground-truth oracle) get the frame;
+    others the image (``DepthPredictor.predict``)."""
+    if hasattr(predictor, "predict_frame"):
+        return predictor.predict_frame(seq, i, image)
+    return predictor.predict(image)
+
+
+def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[int] | None = None,
+              octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None,
+              model: str | None = None, depth_range: tuple[float, float] | None = None,
+              observers: Sequence[Callable] = (), stats_every: int = 10, method: str = "batched",
+              show_progress: bool = True) -> BuildResult:
+    """Integrate ``frames`` of ``seq`` into a new OctoMap.
+
+    source: "mono" (depth predictor, ``keep`` lowest-entropy fraction of valid pixels), "lidar" or
+    "lidar-fov" (``keep`` and the predictor are ignored). predictor: anything with
+    ``predict(image) -> DepthPrediction`` or ``predict_frame(seq, i, image)``; if None,
+    ``DepthPredictor.load(model)`` (None → the shipped checkpoint). depth_range: valid predicted
+    depths (metres), default the predictor's bin range (else BinConfig's 1–80 m).
+    observers: callables ``obs(FrameUpdate)``, closed (``close()``) at the end, also on error.
+    Leaf count / memory are measured every ``stats_every`` frames (a tree traversal) and carried
+    in between. Raises MonoMapError on bad input; nothing is written here.
+    """
+    if source not in SOURCES:
+        raise MonoMapError(f"--source: unknown source {source!r} (choose from {', '.join(SOURCES)})")
+    cfg = octomap or OctoMapConfig()
+    stride = int(stride)
+    if stride < 1:
+        raise MonoMapError(f"--stride: must be a positive integer, got {stride}")
+    if source == "mono":
+        keep = check_keep(keep)
+    frames = list(range(len(seq))) if frames is None else list(frames)
+    if not frames:
+        raise MonoMapError("--frames: no frames selected")
+    if source == "mono" and predictor is None:
+        from mono_map.depth.inference import DepthPredictor
+
+        predictor = DepthPredictor.load(model)
+    if depth_range is None:
+        bins = getattr(predictor, "bins", None) or BinConfig()
+        depth_range = (float(bins.min_depth), float(bins.max_depth))
+    integrator = MapIntegrator(cfg, method=method)
+    K = np.asarray(seq.calib.K2, dtype=np.float64)
+    per_frame: list[dict] = []
+    points_valid = points_kept = rays_cast = 0
+    last = {"leaf_count": 0, "memory_mb": 0.0, "memory_bytes": 0}
+    t_start = time.perf_counter()
+    iterator = frames
+    if show_progress:
+        from mono_map.progress import progress
+
+        iterator = progress(frames, total=len(frames), desc=f"build {source}", unit="frame")
+    try:
+        for n, i in enumerate(iterator, start=1):
+            t_frame = time.perf_counter()
+            T_world_cam2 = seq.T_world_cam2(i)
+            image = depth = entropy = mask = None
+            if source == "mono":
+                image = seq.image(i)
+                pred = _predict(predictor, seq, i, image)
+                depth = np.asarray(pred.depth, dtype=np.float32)
+                entropy = np.asarray(pred.entropy, dtype=np.float32)
+                if depth.shape != image.shape[:2] or entropy.shape != image.shape[:2]:
+                    raise MonoMapError(f"frame {i}: prediction is {depth.shape}, image is {image.shape[:2]}")
+                if np.isnan(depth).any():
+                    raise MonoMapError(f"frame {i}: predicted depth has {int(np.isnan(depth).sum())} NaN pixels "
+                                       f"(model failure)")
+                mask, valid = select_pixels(depth, entropy, keep, *depth_range, stride=stride, return_valid=True)
+                n_valid = int(valid.sum())
+                if not mask.any():
+                    raise MonoMapError(f"frame {i}: empty frame, no valid predicted depth within "
+                                       f"[{depth_range[0]:g}, {depth_range[1]:g}] m")
+                pts = pixels_to_world(depth, mask, K, T_world_cam2)
+                origin = camera_origin(T_world_cam2)
+                kept_fraction = float(mask.sum()) / n_valid
+                mean_entropy = float(entropy[mask].mean())
+            else:
+                pts, origin = lidar_measurement(seq, i, source)
+                if len(pts) == 0:
+                    raise MonoMapError(f"frame {i}: empty frame, the {source} scan has no points")
+                kept_fraction, mean_entropy, n_valid = 1.0, float("nan"), len(pts)
+            res = integrator.insert(pts, origin)
+            points_valid += n_valid
+            points_kept += len(pts)
+            rays_cast += res.keys.n_rays
+            if n % stats_every == 0 or n == len(frames):
+                last = integrator.stats()
+            elapsed = time.perf_counter() - t_start
+            fstats = {"index": int(i), "frames_per_s": n / elapsed if elapsed > 0 else 0.0,
+                      "frame_s": time.perf_counter() - t_frame,
+                      "memory_mb": last["memory_mb"], "leaf_count": last["leaf_count"],
+                      "kept_fraction": kept_fraction, "mean_entropy": mean_entropy, "n_points": int(len(pts)),
+                      "n_rays": int(res.keys.n_rays), "free_cells": int(len(res.keys.free)),
+                      "occupied_cells": int(len(res.keys.occupied))}
+            per_frame.append(fstats)
+            if observers:
+                upd = FrameUpdate(index=int(i), time=float(seq.times[i]), image=image, depth=depth,
+                                  entropy=entropy, keep_mask=mask, K=K, T_world_cam2=T_world_cam2,
+                                  points_world=pts, origin=origin,
+                                  occupied_keys_changed=res.became_occupied,
+                                  freed_keys_changed=res.stopped_occupied, stats=dict(fstats))
+                for obs in observers:
+                    obs(upd)
+    finally:
+        _close(observers)
+    tree = integrator.tree
+    final = integrator.stats()
+    wall = time.perf_counter() - t_start
+    stats = {
+        "source": source, "keep": keep if source == "mono" else None, "sequence": getattr(seq, "name", None),
+        "frames": [int(frames[0]), int(frames[-1]) + 1], "n_frames": len(frames), "stride": stride,
+        "resolution": cfg.resolution, "prob_hit": cfg.prob_hit, "prob_miss": cfg.prob_miss,
+        "clamp_min": cfg.clamp_min, "clamp_max": cfg.clamp_max, "max_range": cfg.max_range,
+        "depth_range": list(depth_range) if source == "mono" else None,
+        "points_valid": int(points_valid), "points_kept": int(points_kept),
+        "points_inserted": int(points_kept), "rays_cast": int(rays_cast),
+        "leaf_count": final["leaf_count"], "tree_nodes": final["tree_nodes"],
+        "memory_bytes": final["memory_bytes"], "memory_mb": final["memory_mb"],
+        "wall_s": wall, "frames_per_s": len(frames) / wall if wall > 0 else 0.0,
+        "integration": method,
+    }
+    return BuildResult(tree=tree, stats=stats, per_frame=per_frame, integrator=integrator)
+
+
+def write_tree_bt(tree, path) -> None:
+    """Write the max-likelihood binary tree (.bt) atomically. Note: OctoMap's writeBinary converts
+    the tree in memory to max-likelihood and prunes it."""
+    from mono_map.io import atomic_path
+
+    with atomic_path(path, suffix=".bt") as tmp:
+        if not tree.writeBinary(str(tmp).encode()):
+            raise MonoMapError(f"{path}: OctoMap could not write the tree")

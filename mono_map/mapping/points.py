@@ -1,0 +1,56 @@
+"""Measurements → world points and sensor origins (metres; world = first cam0 frame).
+
+Camera: pixels (u, v) with depth z along image_2's optical axis → cam2 with K2⁻¹ → world with
+``T_world_cam2``; the sensor origin is image_2's optical centre. LiDAR: velodyne points → world
+with ``T_world_velo = T_world_cam2 · T_cam2_velo``; the origin is the velodyne centre.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mono_map import geometry
+
+
+def pixels_to_world(depth: np.ndarray, mask: np.ndarray, K: np.ndarray, T_world_cam2: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 world points of the masked pixels of an H×W depth image (metres, z-depth)."""
+    v, u = np.nonzero(mask)
+    z = np.asarray(depth, dtype=np.float64)[v, u]
+    pts_cam = geometry.backproject_pixels(K, u, v, z)
+    return geometry.transform_points(T_world_cam2, pts_cam)
+
+
+def camera_origin(T_world_cam2: np.ndarray) -> np.ndarray:
+    """Optical centre of image_2 in the world (3,)."""
+    return np.asarray(T_world_cam2, dtype=np.float64)[:3, 3].copy()
+
+
+def in_camera_fov(points_velo: np.ndarray, T_cam2_velo: np.ndarray, K: np.ndarray, height: int, width: int,
+                  min_depth: float = 1e-3) -> np.ndarray:
+    """Bool (N,): velodyne points that project inside image_2 (nearest pixel in range) with positive depth."""
+    pts_cam = geometry.transform_points(T_cam2_velo, np.asarray(points_velo)[:, :3])
+    uv, z = geometry.project_points(K, pts_cam)
+    ok = z > min_depth
+    with np.errstate(invalid="ignore"):
+        u = np.round(uv[:, 0])
+        v = np.round(uv[:, 1])
+        ok &= (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    return ok
+
+
+def lidar_to_world(scan: np.ndarray, T_world_cam2: np.ndarray, T_cam2_velo: np.ndarray,
+                   fov_only: bool = False, K: np.ndarray | None = None,
+                   image_size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World points (N, 3) of a velodyne scan ((M, ≥3), velodyne frame) and the velodyne centre (3,).
+
+    fov_only: keep only points inside image_2's field of view (needs K and image_size (H, W)).
+    Non-finite points are dropped.
+    """
+    pts = np.asarray(scan, dtype=np.float64)[:, :3]
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if fov_only:
+        if K is None or image_size is None:
+            raise ValueError("fov_only needs K and image_size")
+        pts = pts[in_camera_fov(pts, T_cam2_velo, K, image_size[0], image_size[1])]
+    T_world_velo = np.asarray(T_world_cam2, dtype=np.float64) @ np.asarray(T_cam2_velo, dtype=np.float64)
+    return geometry.transform_points(T_world_velo, pts), T_world_velo[:3, 3].copy()

@@ -1,0 +1,279 @@
+"""Exact batched ray casting: OctoMap's per-scan free/occupied key sets, for a whole frame at once.
+
+Reproduces ``OccupancyOcTreeBase::insertPointCloud(scan, origin, maxrange, lazy, discretize=True)``
+of OctoMap 1.10 up to (but not including) the tree update:
+
+* ``computeDiscreteUpdate``: end points are snapped to their cell centres and deduplicated;
+* ``computeUpdate``: per end point the free cells of ``computeRayKeys(origin, end)`` (a 3-D DDA,
+  Amanatides & Woo) and the end point's cell as occupied; rays longer than ``max_range`` are cut at
+  ``max_range`` and mark free cells only;
+* occupied wins over free; every cell appears once.
+
+The arithmetic follows OctoMap's own types step by step — points are ``float32`` (``point3d``),
+``tMax``/``tDelta`` are ``float64`` accumulated by repeated addition — so the key sets are identical,
+not merely close. All rays of a frame advance together (numpy, one DDA step per loop iteration),
+and cells are deduplicated with a bitmap over the frame's bounding box of keys.
+
+Keys are OctoMap's 16-bit cell addresses (``key = floor(coord / res) + 32768``); they are returned
+as ``int64`` arrays of shape (N, 3). Coordinates are metres in the world frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mono_map.errors import MonoMapError
+
+TREE_MAX_VAL = 32768          # OctoMap 1.10, tree depth 16
+_DBL_MAX = np.finfo(np.float64).max
+_BITMAP_MAX_CELLS = 400_000_000  # bigger frame boxes fall back to np.unique
+
+
+@dataclass
+class KeySets:
+    """One frame's OctoMap update: disjoint sets of free and occupied cell keys (int64, (N, 3))."""
+
+    free: np.ndarray
+    occupied: np.ndarray
+    n_rays: int = 0           # rays cast (after discretisation)
+    n_endpoints: int = 0      # end points marked occupied (rays within max_range)
+
+
+def resolution_factor(resolution: float) -> float:
+    return 1.0 / float(resolution)
+
+
+def coord_to_key(coords: np.ndarray, resolution: float) -> np.ndarray:
+    """OctoMap ``coordToKey``: float32 coordinates (metres) → int64 keys (unchecked)."""
+    c = np.asarray(coords, dtype=np.float32).astype(np.float64)
+    return np.floor(resolution_factor(resolution) * c).astype(np.int64) + TREE_MAX_VAL
+
+
+def key_in_range(keys: np.ndarray) -> np.ndarray:
+    """Rows whose three keys are addressable (``coordToKeyChecked``)."""
+    return np.all((keys >= 0) & (keys < 2 * TREE_MAX_VAL), axis=-1)
+
+
+def key_to_coord(keys: np.ndarray, resolution: float) -> np.ndarray:
+    """Cell centres (float64 metres) of int keys: ``(key - 32768 + 0.5) * res``."""
+    return (np.asarray(keys, dtype=np.float64) - TREE_MAX_VAL + 0.5) * float(resolution)
+
+
+def pack_keys(keys: np.ndarray) -> np.ndarray:
+    """(N, 3) keys → one int64 each (for sets and joins)."""
+    k = np.asarray(keys, dtype=np.int64)
+    return (k[:, 0] << 32) | (k[:, 1] << 16) | k[:, 2]
+
+
+def unpack_keys(packed: np.ndarray) -> np.ndarray:
+    p = np.asarray(packed, dtype=np.int64)
+    return np.stack([(p >> 32) & 0xFFFF, (p >> 16) & 0xFFFF, p & 0xFFFF], axis=1)
+
+
+def _spread_bits(v: np.ndarray) -> np.ndarray:
+    """Insert two zero bits between each of the low 21 bits (for 3-D Morton codes)."""
+    x = v.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
+def morton_order(keys: np.ndarray) -> np.ndarray:
+    """Permutation sorting keys along the octree's Z-order (locality for bulk tree updates)."""
+    k = np.asarray(keys, dtype=np.int64)
+    code = (_spread_bits(k[:, 0]) << np.uint64(2)) | (_spread_bits(k[:, 1]) << np.uint64(1)) | _spread_bits(k[:, 2])
+    return np.argsort(code, kind="stable")
+
+
+def _norm_f32(d: np.ndarray) -> np.ndarray:
+    """``Vector3::norm()``: float32 sum of squares, sqrt in double."""
+    sq = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2]
+    return np.sqrt(sq.astype(np.float64))
+
+
+def discretize(points: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """``computeDiscreteUpdate``'s first half: unique end-point keys and their float32 centres."""
+    keys = coord_to_key(points, resolution)
+    ok = key_in_range(keys)
+    if not ok.all():
+        raise MonoMapError(f"points: {int((~ok).sum())} end points lie outside OctoMap's addressable "
+                           f"range (±{TREE_MAX_VAL * resolution:.0f} m at {resolution} m)")
+    _, first = np.unique(pack_keys(keys), return_index=True)
+    keys = keys[np.sort(first)]
+    centres = key_to_coord(keys, resolution).astype(np.float32)
+    return keys, centres
+
+
+class _Box:
+    """Dense linear indexing of keys inside an axis-aligned box of cells."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, margin: int = 2):
+        self.lo = np.asarray(lo, dtype=np.int64) - margin
+        self.dims = np.asarray(hi, dtype=np.int64) + margin + 1 - self.lo
+        self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
+        self.size = int(np.prod(self.dims))
+
+    def linear(self, keys: np.ndarray) -> np.ndarray:
+        return (keys - self.lo) @ self.strides
+
+    def keys(self, lin: np.ndarray) -> np.ndarray:
+        lin = np.asarray(lin, dtype=np.int64)
+        k0, rem = np.divmod(lin, self.strides[0])
+        k1, k2 = np.divmod(rem, self.strides[1])
+        return np.stack([k0, k1, k2], axis=1) + self.lo
+
+
+def _ray_cells(origin32: np.ndarray, ends32: np.ndarray, resolution: float, box: _Box,
+               key_origin: np.ndarray) -> np.ndarray:
+    """Linear box indices of ``computeRayKeys(origin, end)`` for every end (free cells, with repeats).
+
+    All rays advance one DDA step per loop iteration. A ray can only stop near its end: it meets
+    ``key_end`` exactly at step N = |Δkey|₁ (steps are monotone per axis), and ``min(tMax) > length``
+    needs a crossing within float error of the end point, which only the last three crossings
+    (one per axis) can be. So OctoMap's two stop tests run only from step N - 5 on; rays are sorted
+    by N (descending) so that the rays being tested form a contiguous tail of the active prefix.
+    """
+    res = float(resolution)
+    key_end = coord_to_key(ends32, res)
+    lin_origin = int(box.linear(key_origin[None, :])[0])
+    moving = np.any(key_end != key_origin[None, :], axis=1)   # same cell: empty ray
+    ends32, key_end = ends32[moving], key_end[moving]
+    n = len(ends32)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    n_steps = np.abs(key_end - key_origin[None, :]).sum(axis=1)
+    order = np.argsort(-n_steps, kind="stable")
+    ends32, key_end, n_steps = ends32[order], key_end[order], n_steps[order]
+    lin_end = box.linear(key_end)
+
+    d = ends32 - origin32[None, :]                   # float32
+    length = _norm_f32(d).astype(np.float32)         # (float) direction.norm()
+    d = d / length[:, None]                          # float32 division (direction /= length)
+    step = np.sign(d).astype(np.int64)
+    o64 = origin32.astype(np.float64)
+    d64 = d.astype(np.float64)
+    border = key_to_coord(key_origin, res)[None, :] + (step * res * 0.5).astype(np.float32).astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_max = np.where(step != 0, (border - o64[None, :]) / d64, _DBL_MAX)
+        t_delta = np.where(step != 0, res / np.abs(d64), _DBL_MAX)
+    dlin = step * box.strides[None, :]               # linear-index change per step, per axis
+
+    t0, t1, t2 = (np.ascontiguousarray(t_max[:, i]) for i in range(3))
+    dt0, dt1, dt2 = (np.ascontiguousarray(t_delta[:, i]) for i in range(3))
+    s0, s1, s2 = (np.ascontiguousarray(dlin[:, i]) for i in range(3))
+    cur = np.full(n, lin_origin, dtype=np.int64)
+    lens = length.astype(np.float64)
+    done = np.zeros(n, dtype=bool)
+    # the check zone of step k: rays with n_steps <= k + MARGIN (a tail, since sorted descending)
+    margin = 5
+    neg_steps = -n_steps                             # ascending, for searchsorted
+    buf = np.empty(int(n_steps.sum()) + 8 * n + 1, dtype=np.int64)
+    buf[0] = lin_origin                              # every non-empty ray starts with the origin cell
+    off = 1
+    n_act = n
+    k = 0
+    while n_act:
+        k += 1
+        j0 = int(np.searchsorted(neg_steps, -(k + margin), side="left"))  # rays [0, j0) unchecked
+        j0 = min(j0, n_act)
+        a0, a1, a2 = t0[:n_act], t1[:n_act], t2[:n_act]
+        c01 = a0 < a1
+        m0 = c01 & (a0 < a2)
+        m1 = (a1 < a2) > c01                         # not c01 and t1 < t2
+        m2 = ~(m0 | m1)
+        cur[:n_act] += np.where(m0, s0[:n_act], np.where(m1, s1[:n_act], s2[:n_act]))
+        np.add(a0, dt0[:n_act], out=a0, where=m0)
+        np.add(a1, dt1[:n_act], out=a1, where=m1)
+        np.add(a2, dt2[:n_act], out=a2, where=m2)
+        if j0:
+            buf[off:off + j0] = cur[:j0]
+            off += j0
+        if j0 < n_act:
+            z = slice(j0, n_act)
+            stop = cur[z] == lin_end[z]
+            stop |= np.minimum(np.minimum(t0[z], t1[z]), t2[z]) > lens[z]
+            dz = done[z]
+            dz |= stop
+            emit = cur[z][~dz]
+            if len(emit):
+                if off + len(emit) > len(buf):
+                    buf = np.concatenate([buf, np.empty(len(buf), dtype=np.int64)])
+                buf[off:off + len(emit)] = emit
+                off += len(emit)
+            # drop finished rays from the end of the active prefix
+            live = np.flatnonzero(~dz)
+            n_act = j0 + (int(live[-1]) + 1 if len(live) else 0)
+    return buf[:off]
+
+
+def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
+                   max_range: float = -1.0, discretize_points: bool = True) -> KeySets:
+    """Free and occupied key sets of one scan, exactly as OctoMap's ``insertPointCloud`` computes them.
+
+    points: (N, 3) end points, world frame, metres; origin: (3,) sensor origin (world);
+    max_range < 0 = unlimited. With ``discretize_points=False`` the rays go to the raw end points
+    (OctoMap's ``computeUpdate`` without ``computeDiscreteUpdate``).
+    """
+    res = float(resolution)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not np.isfinite(pts).all():
+        raise MonoMapError("points: non-finite coordinates (NaN or inf) in the scan")
+    origin32 = np.asarray(origin, dtype=np.float64).reshape(3).astype(np.float32)
+    key_origin = coord_to_key(origin32[None, :], res)[0]
+    if not key_in_range(key_origin[None, :])[0]:
+        raise MonoMapError(f"origin: {origin32.tolist()} is outside OctoMap's addressable range")
+    empty = np.zeros((0, 3), dtype=np.int64)
+    if len(pts) == 0:
+        return KeySets(empty, empty.copy())
+    if discretize_points:
+        _, ends = discretize(pts, res)
+    else:
+        ends = pts.astype(np.float32)
+        ok = key_in_range(coord_to_key(ends, res))
+        if not ok.all():
+            raise MonoMapError(f"points: {int((~ok).sum())} end points lie outside OctoMap's addressable range")
+    n_rays = len(ends)
+
+    # max range: long rays are cut (free cells only, no occupied end point)
+    if max_range is not None and max_range >= 0:
+        dist = _norm_f32(ends - origin32[None, :])
+        inside = dist <= max_range
+        if not inside.all():
+            far = ends[~inside]
+            dfar = far - origin32[None, :]
+            nrm = _norm_f32(dfar).astype(np.float32)
+            dirn = dfar / nrm[:, None]
+            cut = origin32[None, :] + dirn * np.float32(max_range)
+            ray_ends = np.concatenate([ends[inside], cut.astype(np.float32)])
+        else:
+            ray_ends = ends
+        occ_ends = ends[inside]
+    else:
+        ray_ends = ends
+        occ_ends = ends
+
+    occ_keys = coord_to_key(occ_ends, res)
+    ray_end_keys = coord_to_key(ray_ends, res)
+    occ_keys = occ_keys[key_in_range(occ_keys)]
+    ok = key_in_range(ray_end_keys)
+    ray_ends, ray_end_keys = ray_ends[ok], ray_end_keys[ok]
+    all_keys = np.concatenate([ray_end_keys, occ_keys, key_origin[None, :]])
+    box = _Box(all_keys.min(axis=0), all_keys.max(axis=0))
+
+    free_lin = _ray_cells(origin32, ray_ends, res, box, key_origin)
+    occ_lin = box.linear(occ_keys) if len(occ_keys) else np.zeros(0, np.int64)
+    if len(free_lin) and (free_lin.min() < 0 or free_lin.max() >= box.size):
+        raise AssertionError("ray left its bounding box")  # cannot happen: margin covers DDA overshoot
+    if box.size <= _BITMAP_MAX_CELLS:
+        mark = np.zeros(box.size, dtype=np.uint8)
+        mark[free_lin] = 1
+        mark[occ_lin] = 2                          # occupied wins
+        free_u = np.flatnonzero(mark == 1)
+        occ_u = np.flatnonzero(mark == 2)
+    else:
+        occ_u = np.unique(occ_lin)
+        free_u = np.setdiff1d(np.unique(free_lin), occ_u, assume_unique=True)
+    return KeySets(free=box.keys(free_u), occupied=box.keys(occ_u), n_rays=n_rays, n_endpoints=len(occ_u))

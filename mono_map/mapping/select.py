@@ -1,0 +1,54 @@
+"""Pixel selection by uncertainty: keep the lowest-entropy fraction of each frame's valid pixels."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mono_map.errors import MonoMapError
+
+
+def check_keep(keep: float) -> float:
+    keep = float(keep)
+    if not (0.0 < keep <= 1.0) or not np.isfinite(keep):
+        raise MonoMapError(f"--keep: must be in (0, 1], got {keep}")
+    return keep
+
+
+def valid_pixels(depth: np.ndarray, min_depth: float, max_depth: float, stride: int = 1) -> np.ndarray:
+    """H×W bool: finite depth within [min_depth, max_depth] metres, on the stride grid (every
+    ``stride``-th row and column, starting at 0)."""
+    if stride < 1:
+        raise MonoMapError(f"--stride: must be a positive integer, got {stride}")
+    d = np.asarray(depth)
+    ok = np.isfinite(d) & (d >= min_depth) & (d <= max_depth)
+    if stride > 1:
+        grid = np.zeros(d.shape, dtype=bool)
+        grid[::stride, ::stride] = True
+        ok &= grid
+    return ok
+
+
+def select_pixels(depth: np.ndarray, entropy: np.ndarray, keep: float, min_depth: float = 1.0,
+                  max_depth: float = 80.0, stride: int = 1, return_valid: bool = False):
+    """H×W bool mask of the kept pixels.
+
+    Exactly ``round(keep · n_valid)`` of the n_valid valid pixels are kept: those with the lowest
+    entropy (ties broken by raster order, so the result is deterministic). Pixels whose entropy is
+    not finite count as invalid. With return_valid, returns (kept, valid) masks.
+    """
+    keep = check_keep(keep)
+    depth = np.asarray(depth)
+    entropy = np.asarray(entropy)
+    if depth.shape != entropy.shape or depth.ndim != 2:
+        raise MonoMapError(f"entropy: shape {entropy.shape} does not match depth {depth.shape} (H×W expected)")
+    valid = valid_pixels(depth, min_depth, max_depth, stride) & np.isfinite(entropy)
+    idx = np.flatnonzero(valid)
+    n_keep = int(round(keep * len(idx)))
+    mask = np.zeros(depth.size, dtype=bool)
+    if n_keep == len(idx):
+        mask[idx] = True
+    elif n_keep > 0:
+        order = np.argsort(entropy.reshape(-1)[idx], kind="stable")
+        mask[idx[order[:n_keep]]] = True
+    mask = mask.reshape(depth.shape)
+    return (mask, valid) if return_valid else mask
