@@ -21,7 +21,7 @@ from mono_map.data.synth.recipe import Recipe, load_recipe, recipe_path
 from mono_map.data.synth.trajectory import frame_pose_indices, frame_pose_lines, frame_poses
 from mono_map.errors import MonoMapError
 
-GENERATOR_VERSION = "2"
+GENERATOR_VERSION = "3"
 FRAME_PERIOD = 0.1          # seconds between consecutive real poses (KITTI records at 10 Hz)
 
 
