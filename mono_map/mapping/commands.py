@@ -154,7 +154,8 @@ def run_build(args) -> int:
     if args.viewer or args.rrd:
         from mono_map.viz.rerun_stream import RerunMapLogger
 
-        observers.append(RerunMapLogger(rrd=args.rrd, spawn=args.viewer, reference_map=args.reference_map))
+        observers.append(RerunMapLogger(rrd=args.rrd, spawn=args.viewer, reference_map=args.reference_map,
+                                        resolution=cfg.resolution, image_size=seq.image_size))
     bt, stats = build_and_write(seq, args.source, args.keep, cfg, frames, args.stride, args.model, out_dir,
                                 name=args.name, observers=observers)
     print(f"wrote {bt} ({stats['bt_bytes'] / 2**20:.1f} MB on disk) and {bt.with_suffix('.json')}")
