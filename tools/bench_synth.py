@@ -66,8 +66,8 @@ def preview(seq_dir: Path, index: int, out: Path) -> None:
     ldepth = lidar_depth_image(pts_cam, K, img.shape[0], img.shape[1])
 
     def colorise(d):
-        inv = np.where(d > 0, 1.0 / np.maximum(d, 1e-3), 0)
-        v = np.clip((inv - 1 / 80) / (1 / 2 - 1 / 80), 0, 1)
+        # log depth, 2 m (red) ... 80 m (blue)
+        v = np.clip(1 - np.log(np.maximum(d, 1e-3) / 2.0) / np.log(40.0), 0, 1)
         c = cv2.applyColorMap((v * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
         c[d <= 0] = 0
         return c
@@ -81,7 +81,7 @@ def preview(seq_dir: Path, index: int, out: Path) -> None:
     lcol = colorise(ld)
     over[m] = lcol[m]
     panel = np.concatenate([img, dcol, over], axis=0)
-    panel = cv2.resize(panel, (panel.shape[1] * 3 // 4, panel.shape[0] * 3 // 4), interpolation=cv2.INTER_AREA)
+    panel = cv2.resize(panel, (panel.shape[1] // 2, panel.shape[0] // 2), interpolation=cv2.INTER_AREA)
     out.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(out), panel[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 9])
     print(f"wrote {out} ({out.stat().st_size / 1024:.0f} KB): image_2 / dense depth_2 / LiDAR in image_2")
