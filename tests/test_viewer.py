@@ -158,6 +158,13 @@ def test_logger_rejects_bad_options(tmp_path):
         RerunMapLogger(rrd=tmp_path / "x.rrd", reference_map=tmp_path / "nope.bt")
 
 
+def test_logger_rejects_cells_of_another_resolution(tmp_path):
+    logger = RerunMapLogger(rrd=tmp_path / "r.rrd", resolution=0.1)  # the "build" below uses 0.2 m cells
+    with pytest.raises(MonoMapError, match="resolution"):
+        logger(make_update(0, {(1, 2, 3), (4, 5, 6)}, set(), np.random.default_rng(5)))
+    logger.abort()
+
+
 def test_aborted_logger_leaves_no_file(tmp_path):
     rrd = tmp_path / "aborted.rrd"
     with pytest.raises(RuntimeError):

@@ -393,6 +393,7 @@ class RerunMapLogger:
         self._log_points(update)
         self._log_trajectory(update)
 
+        self._check_resolution(update.occupied_keys_changed)
         self._pending_add.append(pack(cell_indices(update.occupied_keys_changed, self.resolution)))
         self._pending_rem.append(pack(cell_indices(update.freed_keys_changed, self.resolution)))
         self.frames += 1
@@ -405,6 +406,13 @@ class RerunMapLogger:
             if v is not None and np.isfinite(v):
                 rec.log(f"stats/{name}", rr.Scalars(float(v)))
         rec.log("stats/map_cells", rr.Scalars(float(self.map_cells)))
+
+    def _check_resolution(self, centres: np.ndarray) -> None:
+        """Cell centres sit at (i + 0.5)·res: anything else means the build used another --res."""
+        c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)[:64] / self.resolution
+        if len(c) and np.abs(c - np.floor(c) - 0.5).max() > 1e-3:
+            raise MonoMapError(f"viewer: changed cells are not centres of {self.resolution:g} m cells "
+                               f"(give RerunMapLogger the build's resolution)")
 
     def _log_camera(self, u: Any) -> None:
         rr = self.rr
@@ -449,7 +457,8 @@ class RerunMapLogger:
                 colormap=rr.components.Colormap.Turbo, depth_range=[1000.0, 80000.0]))  # raw units (mm)
         if u.entropy is not None:
             e = self._aux(np.asarray(u.entropy, dtype=np.float32))
-            q = np.clip(np.nan_to_num(e, nan=0.0) * (255.0 / self.entropy_max), 0, 255).astype(np.uint8)
+            e = np.clip(np.nan_to_num(e, nan=0.0, posinf=self.entropy_max, neginf=0.0), 0.0, self.entropy_max)
+            q = (e * (255.0 / self.entropy_max)).astype(np.uint8)
             rec.log("frame/entropy", rr.EncodedImage(
                 contents=encode_jpeg_bgr(self._magma_bgr[q], self.jpeg_quality), media_type="image/jpeg"))
         if u.keep_mask is not None:
