@@ -20,13 +20,13 @@ def register(subparsers) -> None:
         "view", help="open a recording (.rrd) or a finished OctoMap (.bt) in the rerun viewer",
         description="Open FILE in the rerun viewer. A .rrd (e.g. from `mono-map build --rrd`) is opened as "
                     "is; a .bt map is logged as occupied cells coloured by height. With --save the "
-                    "recording is written to a file instead of opening a viewer; with --screenshot a "
-                    "PNG of the viewer's default layout is rendered (offscreen via xvfb-run if there is "
-                    "no display).")
+                    "recording is written to a file instead of opening a viewer; with --screenshot the "
+                    "real viewer renders the default layout headless (no display needed) into a PNG.")
     p.add_argument("file", help="a .rrd recording or a .bt OctoMap")
     p.add_argument("--save", metavar="OUT.rrd", help="write the recording here instead of opening a viewer")
-    p.add_argument("--screenshot", metavar="OUT.png", help="render the viewer to this PNG and quit")
-    p.add_argument("--size", default="1600x1000", help="viewer window size for --screenshot (default 1600x1000)")
+    p.add_argument("--screenshot", metavar="OUT.png",
+                   help="render the recording in a headless viewer (default layout, 1920x1080) to this PNG")
+    p.add_argument("--frame", type=int, default=None, help="frame shown by --screenshot (default: the last)")
     p.add_argument("--cells", default="voxels", choices=("voxels", "points", "boxes"),
                    help="how a .bt map's cells are drawn (default voxels)")
     p.set_defaults(func=run_view)
@@ -43,28 +43,56 @@ def _check_rrd(path: Path) -> None:
         raise MonoMapError(f"{path}: rerun file holds no recording")
 
 
-def screenshot(rrd: Path, png: Path, size: str = "1600x1000", timeout: float = 300.0) -> None:
-    """Render ``rrd`` with the real viewer (default blueprint) into ``png``.
+def _free_port() -> int:
+    import socket
 
-    Without a display this runs under ``xvfb-run`` (Debian ``xvfb``); the viewer renders with
-    Vulkan on Mesa's llvmpipe CPU driver, slow but faithful.
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def screenshot(rrd: Path, png: Path, frame: int | None = None, timeout: float = 300.0) -> None:
+    """Render ``rrd`` with the real viewer, headless (no display needed), into ``png`` (1920×1080).
+
+    The viewer opens the recording with its default blueprint, jumps to ``frame`` on the ``frame``
+    timeline (default: the last), and saves a screenshot. Needs a Vulkan driver; without a GPU,
+    Mesa's lavapipe CPU rasterizer (Debian ``mesa-vulkan-drivers``) works, slowly.
     """
+    import time
+
+    from rerun.experimental import ViewerClient
+
     from mono_map.io import atomic_path
 
-    cmd = [rerun_binary(), "--port", "0", "--window-size", size]
-    env = dict(os.environ, XDG_RUNTIME_DIR=os.environ.get("XDG_RUNTIME_DIR", "/tmp"))
-    prefix = []
-    if not env.get("DISPLAY"):
-        if shutil.which("xvfb-run") is None:
-            raise MonoMapError("--screenshot: no display and no xvfb-run (apt-get install xvfb)")
-        w, h = (int(v) for v in size.lower().split("x"))
-        prefix = ["xvfb-run", "-a", "-s", f"-screen 0 {w}x{h}x24"]
-    with atomic_path(png) as tmp:
-        proc = subprocess.run(prefix + cmd + ["--screenshot-to", str(tmp), str(rrd)], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=timeout, text=True)
-        if proc.returncode != 0 or not tmp.exists() or tmp.stat().st_size == 0:
-            tail = proc.stdout.strip().splitlines()[-1:] if proc.stdout else []
-            raise MonoMapError(f"{png}: the viewer could not render a screenshot ({'; '.join(tail)})")
+    png = Path(png)
+    if png.suffix.lower() != ".png":
+        raise MonoMapError(f"--screenshot: {png}: the output must end in .png")
+    os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp")
+    try:
+        viewer = ViewerClient.spawn(headless=True, port=_free_port(), executable_path=rerun_binary(),
+                                    hide_welcome_screen=True)
+    except Exception as exc:  # no graphics adapter, binary missing, ...
+        raise MonoMapError(f"--screenshot: could not start a headless rerun viewer ({str(exc).splitlines()[0]})") \
+            from None
+    try:
+        viewer.open(str(Path(rrd).resolve()))
+        deadline = time.monotonic() + timeout
+        while True:
+            state = viewer.get_state()
+            if not state.loading or time.monotonic() > deadline:
+                break
+            time.sleep(1.0)
+        timelines = {t.name: t for r in state.recordings for t in r.timelines}
+        if "frame" in timelines and timelines["frame"].end is not None:
+            viewer.set_time("frame", sequence=int(timelines["frame"].end if frame is None else frame),
+                            play_state="paused")
+        time.sleep(2.0)  # let it paint the new time
+        with atomic_path(png) as tmp:
+            viewer.save_screenshot(str(tmp.resolve()))
+            if not tmp.exists() or tmp.stat().st_size == 0:
+                raise MonoMapError(f"--screenshot: {png}: the viewer did not write a picture")
+    finally:
+        viewer.quit()
 
 
 def run_view(args) -> int:
@@ -102,7 +130,7 @@ def run_view(args) -> int:
               f"height colour range {lo:.2f}..{hi:.2f} m", file=sys.stderr)
 
     if args.screenshot is not None:
-        screenshot(rrd, Path(args.screenshot), args.size)
+        screenshot(rrd, Path(args.screenshot), args.frame)
         print(f"wrote {args.screenshot}", file=sys.stderr)
     elif args.save is None:
         # Open in a detached viewer process (returns immediately).

@@ -183,7 +183,8 @@ def cells_archetype(idx: np.ndarray, resolution: float, style: str = "voxels",
     if style == "voxels":
         o = np.zeros(3, np.int64) if origin is None else np.asarray(origin, np.int64)
         return rr.VoxelGridMap(
-            (idx - o).astype(np.int32), voxel_size=[resolution] * 3, values=heights(idx, resolution),
+            (idx - o).astype(np.int32), voxel_size=[resolution] * 3,
+            values=np.clip(heights(idx, resolution), lo, hi),  # the viewer greys out-of-range values
             value_range=[lo, hi], colormap=rr.components.Colormap.Turbo,
             translation=(o * resolution).astype(np.float64))
     centres = ((idx.astype(np.float64) + 0.5) * resolution).astype(np.float32)
