@@ -41,3 +41,18 @@ def test_short_build_writes_recording_with_expected_paths_and_frames(tiny_root, 
     expected = {tuple(c) for c in cell_indices(centres, res).tolist()}
     assert len(expected) > 100
     assert map_cells_at(rows, frames[-1], res) == expected
+
+
+def test_build_cli_rrd_uses_the_build_resolution(tiny_root, tmp_path):
+    """`mono-map build --rrd` at --res 0.4: the streamed cells are the written map's 0.4 m cells."""
+    from mono_map.cli import main as cli_main
+
+    rrd = tmp_path / "cli.rrd"
+    code = cli_main(["build", "--seq", "tiny", "--data-root", str(tiny_root), "--source", "lidar-fov",
+                     "--frames", "0:3", "--res", "0.4", "--out", str(tmp_path), "--name", "m", "--rrd", str(rrd)])
+    assert code == 0 and rrd.is_file()
+    rows = read_recording(rrd)
+    assert sorted(f for f, e in rows["/world/camera"] if e.get("Transform3D:translation")) == [0, 1, 2]
+    centres, res = occupied_cells_from_bt(tmp_path / "m.bt")
+    assert res == 0.4
+    assert map_cells_at(rows, 2, res) == {tuple(c) for c in cell_indices(centres, res).tolist()}
