@@ -218,6 +218,13 @@ def test_view_bt_save_writes_valid_rrd(tmp_path, small_bt, capsys):
     assert again.read_bytes() == out.read_bytes()
 
 
+def test_view_without_display_asks_for_save(tmp_path, small_bt, monkeypatch, capsys):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert cli_main(["view", str(small_bt[0])]) == 2
+    assert "--save" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("case", ["missing", "suffix", "corrupt_rrd", "corrupt_bt", "bad_save"])
 def test_view_bad_paths_give_one_line_errors(tmp_path, case, small_bt, capsys):
     if case == "missing":

@@ -95,6 +95,11 @@ def screenshot(rrd: Path, png: Path, frame: int | None = None, timeout: float = 
         viewer.quit()
 
 
+def _check_display() -> None:
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise MonoMapError("view: no display to open a viewer on (use --save OUT.rrd or --screenshot OUT.png)")
+
+
 def run_view(args) -> int:
     path = Path(args.file)
     if not path.is_file():
@@ -119,6 +124,7 @@ def run_view(args) -> int:
         from mono_map.viz.rerun_stream import log_bt_map
 
         if args.save is None and args.screenshot is None:
+            _check_display()
             info = log_bt_map(path, spawn=True, cells=args.cells)
             print(f"{path}: {info['cells']} occupied cells at {info['resolution']} m sent to the viewer",
                   file=sys.stderr)
@@ -133,6 +139,7 @@ def run_view(args) -> int:
         screenshot(rrd, Path(args.screenshot), args.frame)
         print(f"wrote {args.screenshot}", file=sys.stderr)
     elif args.save is None:
+        _check_display()
         # Open in a detached viewer process (returns immediately).
         subprocess.Popen([rerun_binary(), str(rrd)], start_new_session=True,
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
