@@ -88,7 +88,14 @@ def screenshot(rrd: Path, png: Path, frame: int | None = None, timeout: float = 
                             play_state="paused")
         time.sleep(2.0)  # let it paint the new time
         with atomic_path(png) as tmp:
-            viewer.save_screenshot(str(tmp.resolve()))
+            for attempt in range(4):  # a CPU rasterizer on a busy machine can miss the viewer's 15 s deadline
+                try:
+                    viewer.save_screenshot(str(tmp.resolve()))
+                    break
+                except TimeoutError:
+                    if attempt == 3:
+                        raise MonoMapError(f"--screenshot: {png}: the viewer did not finish painting in time "
+                                           f"(software rendering on a busy machine?)") from None
             if not tmp.exists() or tmp.stat().st_size == 0:
                 raise MonoMapError(f"--screenshot: {png}: the viewer did not write a picture")
     finally:
