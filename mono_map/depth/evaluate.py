@@ -50,7 +50,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
 
     bins = predictor.bins
     per = {"log": [], "linear": [], "argmax": []}
-    pooled = {k: [] for k in ("gt", "log", "linear", "argmax", "entropy", "modes")}
+    pooled = {k: [] for k in ("gt", "log", "linear", "argmax", "entropy", "std_log", "modes")}
     times = []
     names = []
     for j, (name, image, gt) in enumerate(progress(frames, total=n_frames, desc=desc or "eval-depth", unit="frame")):
@@ -64,7 +64,14 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         with torch.inference_mode():
             r_log = decode(predictor.head, out, bins, "log", with_probs=True)
             r_lin = decode(predictor.head, out, bins, "linear")
-            maps = torch.stack([r_log["depth"], r_lin["depth"], r_log["argmax"], r_log["entropy"]], 1)
+            probs = r_log["probs"]
+            if probs is not None:  # second uncertainty measure: std of log-depth under the distribution
+                lc = torch.as_tensor(bins.log_centres, dtype=probs.dtype).view(1, -1, 1, 1)
+                mu = (probs * lc).sum(1, keepdim=True)
+                std_log = ((probs * (lc - mu) ** 2).sum(1)).clamp_min(0).sqrt()
+            else:
+                std_log = torch.zeros_like(r_log["entropy"])
+            maps = torch.stack([r_log["depth"], r_lin["depth"], r_log["argmax"], r_log["entropy"], std_log], 1)
             maps = predictor.to_image(maps, geom)[0].numpy()
             if r_log["probs"] is not None:
                 modes = top_modes(r_log["probs"], bins, max(MS))[0]
@@ -81,12 +88,14 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
             pooled[key].append(clip(maps[idx][m]))
         pooled["gt"].append(gt[m].astype(np.float64))
         pooled["entropy"].append(maps[3][m])
+        pooled["std_log"].append(maps[4][m])
         pooled["modes"].append(clip(modes[:, m]))
         names.append(name)
     if not names:
         raise ValueError("evaluate_model: no frames")
     P = {k: np.concatenate(v, axis=-1) for k, v in pooled.items()}
     spars = sparsification(P["gt"], P["log"], P["entropy"])
+    spars_std = sparsification(P["gt"], P["log"], P["std_log"])
     return {
         "head": predictor.head,
         "checkpoint": str(predictor.checkpoint),
@@ -96,6 +105,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         "metrics_linear": mean_errors(per["linear"]),
         "metrics_argmax": mean_errors(per["argmax"]),
         "sparsification": spars,
+        "auc_std_log": spars_std["auc"],
         "hypotheses": {str(k): v for k, v in oracle_errors(P["gt"], P["modes"], MS).items()},
         "ms_per_frame": float(np.median(times)) if times else None,
     }
@@ -122,13 +132,16 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
         L.append(f"| {h} | {a['abs_rel']:.4f} | {b['abs_rel']:.4f} | {c['abs_rel']:.4f} | {a['rmse']:.3f} | "
                  f"{b['rmse']:.3f} | {c['rmse']:.3f} | {a['a1']:.4f} | {b['a1']:.4f} | {c['a1']:.4f} |")
     L += ["", "## Uncertainty: sparsification AUC (lower is better; paper Table II, ARE and 1−δ1 in %)", "",
-          "| head | AUC ARE (%) | AUC RMSE (m) | AUC 1−δ1 (%) | oracle ARE | oracle RMSE | oracle 1−δ1 | random ARE | random RMSE | random 1−δ1 |",
-          "|---|---|---|---|---|---|---|---|---|---|"]
+          "Model = pixels ranked by entropy; oracle = ranked by the true error; random = no ranking; "
+          "std-log = ranked by the standard deviation of log-depth under the predicted distribution instead of entropy.", "",
+          "| head | AUC ARE (%) | AUC RMSE (m) | AUC 1−δ1 (%) | oracle ARE | oracle RMSE | oracle 1−δ1 | random ARE | random RMSE | random 1−δ1 | std-log: ARE | std-log: RMSE | std-log: 1−δ1 |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for h in heads:
         s = results[h]["sparsification"]
-        a, o, q = s["auc"], s["auc_oracle"], s["auc_random"]
+        a, o, q, z = s["auc"], s["auc_oracle"], s["auc_random"], results[h]["auc_std_log"]
         L.append(f"| {h} | {100*a['are']:.2f} | {a['rmse']:.3f} | {100*a['1-d1']:.2f} | {100*o['are']:.2f} | "
-                 f"{o['rmse']:.3f} | {100*o['1-d1']:.2f} | {100*q['are']:.2f} | {q['rmse']:.3f} | {100*q['1-d1']:.2f} |")
+                 f"{o['rmse']:.3f} | {100*o['1-d1']:.2f} | {100*q['are']:.2f} | {q['rmse']:.3f} | {100*q['1-d1']:.2f} | "
+                 f"{100*z['are']:.2f} | {z['rmse']:.3f} | {100*z['1-d1']:.2f} |")
     L += ["", "## Oracle multi-hypothesis evaluation (top-M modes; paper Table III / Fig. 6)", "",
           "| head | " + " | ".join(f"ARE M={m} | RMSE M={m} | δ1 M={m}" for m in MS) + " |",
           "|---|" + "---|---|---|" * len(MS)]
