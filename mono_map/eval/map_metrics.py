@@ -38,10 +38,19 @@ class Leaves:
     length: np.ndarray    # int64
     occupied: np.ndarray  # bool
     resolution: float
+    value: np.ndarray | None = None   # float log-odds per leaf
 
     @property
     def cells(self) -> int:
         return int(self.length.sum())
+
+    def expand(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every finest cell: (Morton codes, leaf index), codes sorted."""
+        total = int(self.length.sum())
+        leaf = np.repeat(np.arange(len(self.start)), self.length)
+        offset = np.arange(total) - np.repeat(np.cumsum(self.length) - self.length, self.length)
+        return self.start[leaf] + offset, leaf
+
 
 
 def load_tree(path: str | Path):
@@ -98,7 +107,8 @@ def tree_leaves(tree) -> Leaves:
     keys -= keys % side[:, None]                                   # align (guards rounding)
     start = morton_codes(keys)
     order = np.argsort(start, kind="stable")
-    return Leaves(start=start[order], length=(side ** 3)[order], occupied=(value >= thr)[order], resolution=res)
+    return Leaves(start=start[order], length=(side ** 3)[order], occupied=(value >= thr)[order], resolution=res,
+                  value=value[order])
 
 
 def _state_at(leaves: Leaves, points: np.ndarray) -> np.ndarray:

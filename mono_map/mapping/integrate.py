@@ -64,6 +64,7 @@ class LogOddsMirror:
         self.table_lo = np.zeros(3, dtype=np.int64)
         self.pool = np.full(0, np.nan, dtype=np.float32)     # current log-odds
         self.synced = np.full(0, np.nan, dtype=np.float32)   # value the octree holds
+        self.dirty = np.zeros(0, dtype=bool)                  # changed since the last sync
         self.block_keys = np.zeros((0, 3), dtype=np.int64)   # key of each block's first cell
         self.n_blocks = 0
 
@@ -125,6 +126,7 @@ class LogOddsMirror:
                     cap = max(need, int(len(self.pool) * 1.5))
                     self.pool = _grow(self.pool, cap, np.nan)
                     self.synced = _grow(self.synced, cap, np.nan)
+                    self.dirty = _grow(self.dirty, cap, False)
                 if self.n_blocks > len(self.block_keys):
                     cap = max(self.n_blocks, int(len(self.block_keys) * 1.5))
                     self.block_keys = _grow(self.block_keys, cap, 0)
@@ -161,6 +163,14 @@ def _grow(a: np.ndarray, n: int, fill) -> np.ndarray:
     out = np.full((n,) + a.shape[1:], fill, dtype=a.dtype)
     out[:len(a)] = a
     return out
+
+
+_XYZ = np.dtype([("x", "f8"), ("y", "f8"), ("z", "f8")])
+
+
+def _as_tuples(points: np.ndarray) -> list:
+    """(N, 3) float64 → list of (x, y, z) tuples (the fastest input for octomap-python's updateNodes)."""
+    return np.ascontiguousarray(points, dtype=np.float64).view(_XYZ).ravel().tolist()
 
 
 def exact_increments(old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -214,7 +224,7 @@ class MapIntegrator:
         self._tree = make_octree(self.cfg)
         self.mirror = LogOddsMirror() if method == "batched" else None
         self.sync_every = sync_every
-        self._dirty: list[np.ndarray] = []
+        self._pending = False
         # OctoMap stores these as float (logodds() returns float)
         self.hit = np.float32(self._tree.getProbHitLog())
         self.miss = np.float32(self._tree.getProbMissLog())
@@ -281,7 +291,8 @@ class MapIntegrator:
         new = np.where(new < self.cmin, self.cmin, new)
         new = np.where(new > self.cmax, self.cmax, new).astype(np.float32)
         self.mirror.pool[idx] = new
-        self._dirty.append(idx)
+        self.mirror.dirty[idx] = True
+        self._pending = True
         was_occ = known & (old >= self.occ_thres)
         is_occ = new >= self.occ_thres
         flipped = (is_occ & ~was_occ) if occupied else (was_occ & ~is_occ)
@@ -291,11 +302,13 @@ class MapIntegrator:
         """Bring the octree up to the mirror; returns seconds spent."""
         import time
 
-        if self.mirror is None or not self._dirty:
+        if self.mirror is None or not self._pending:
             return 0.0
         t0 = time.perf_counter()
-        idx = np.unique(np.concatenate(self._dirty))
-        self._dirty = []
+        used = self.mirror.n_blocks * self.mirror.CELLS
+        idx = np.flatnonzero(self.mirror.dirty[:used])
+        self.mirror.dirty[idx] = False
+        self._pending = False
         new = self.mirror.pool[idx]
         old = self.mirror.synced[idx]
         moved = ~(new == old)                       # NaN old (absent) counts as moved
@@ -317,13 +330,13 @@ class MapIntegrator:
 
     def _update_grouped(self, centres: np.ndarray, increments: np.ndarray) -> None:
         """``updateNodes`` once per distinct float32 increment."""
-        values, inverse = np.unique(increments, return_inverse=True)
-        self.n_groups = getattr(self, "n_groups", 0) + len(values)
-        order = np.argsort(inverse, kind="stable")
-        bounds = np.searchsorted(inverse[order], np.arange(len(values) + 1))
-        for g, value in enumerate(values):
-            rows = order[bounds[g]:bounds[g + 1]]
-            self._tree.updateNodes(centres[rows].tolist(), float(value))
+        bits = np.ascontiguousarray(increments, dtype=np.float32).view(np.uint32)
+        order = np.argsort(bits, kind="stable")          # stable: Morton order kept within a group
+        sb = bits[order]
+        cuts = np.flatnonzero(np.diff(sb)) + 1
+        for rows in np.split(order, cuts):
+            value = float(increments[rows[0]])
+            self._tree.updateNodes(_as_tuples(centres[rows]), value)
 
     def stats(self) -> dict:
         """Leaf count and memory (OctoMap's ``memoryUsage``, MB = 2**20 bytes); syncs and traverses the tree."""

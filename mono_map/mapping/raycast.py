@@ -121,13 +121,31 @@ class _Box:
 
     def keys(self, lin: np.ndarray) -> np.ndarray:
         lin = np.asarray(lin, dtype=np.int64)
-        k0, rem = np.divmod(lin, self.strides[0])
-        k1, k2 = np.divmod(rem, self.strides[1])
-        return np.stack([k0, k1, k2], axis=1) + self.lo
+        k0, rem = _divmod(lin, int(self.strides[0]))
+        k1, k2 = _divmod(rem, int(self.strides[1]))
+        out = np.empty((len(lin), 3), dtype=np.int64)
+        out[:, 0] = k0 + self.lo[0]
+        out[:, 1] = k1 + self.lo[1]
+        out[:, 2] = k2 + self.lo[2]
+        return out
+
+
+def _divmod(a: np.ndarray, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Exact floor divmod of non-negative int64 (< 2**50) by a positive int, via float64 (faster than
+    numpy's integer division); the float quotient is off by at most one and corrected."""
+    q = (a * (1.0 / b)).astype(np.int64)
+    r = a - q * b
+    low = r < 0
+    q[low] -= 1
+    r[low] += b
+    high = r >= b
+    q[high] += 1
+    r[high] -= b
+    return q, r
 
 
 def _ray_cells(origin32: np.ndarray, ends32: np.ndarray, resolution: float, box: _Box,
-               key_origin: np.ndarray) -> np.ndarray:
+               key_origin: np.ndarray, mark: np.ndarray | None = None) -> np.ndarray | None:
     """Linear box indices of ``computeRayKeys(origin, end)`` for every end (free cells, with repeats).
 
     All rays advance one DDA step per loop iteration. A ray can only stop near its end: it meets
@@ -138,6 +156,14 @@ def _ray_cells(origin32: np.ndarray, ends32: np.ndarray, resolution: float, box:
     """
     res = float(resolution)
     key_end = coord_to_key(ends32, res)
+    from mono_map.mapping.raycast_c import load_kernel, ray_cells_c
+
+    kernel = load_kernel()
+    if kernel is not None:
+        if mark is not None:
+            ray_cells_c(kernel, origin32, key_origin, ends32, key_end, res, box.lo, box.strides, TREE_MAX_VAL, mark)
+            return None
+        return ray_cells_c(kernel, origin32, key_origin, ends32, key_end, res, box.lo, box.strides, TREE_MAX_VAL)
     lin_origin = int(box.linear(key_origin[None, :])[0])
     moving = np.any(key_end != key_origin[None, :], axis=1)   # same cell: empty ray
     ends32, key_end = ends32[moving], key_end[moving]
@@ -209,6 +235,11 @@ def _ray_cells(origin32: np.ndarray, ends32: np.ndarray, resolution: float, box:
     return buf[:off]
 
 
+def _check_in_box(lin: np.ndarray, box: _Box) -> None:
+    if len(lin) and (lin.min() < 0 or lin.max() >= box.size):
+        raise AssertionError("ray left its bounding box")  # cannot happen: the margin covers DDA overshoot
+
+
 def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
                    max_range: float = -1.0, discretize_points: bool = True) -> KeySets:
     """Free and occupied key sets of one scan, exactly as OctoMap's ``insertPointCloud`` computes them.
@@ -263,17 +294,19 @@ def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
     all_keys = np.concatenate([ray_end_keys, occ_keys, key_origin[None, :]])
     box = _Box(all_keys.min(axis=0), all_keys.max(axis=0))
 
-    free_lin = _ray_cells(origin32, ray_ends, res, box, key_origin)
     occ_lin = box.linear(occ_keys) if len(occ_keys) else np.zeros(0, np.int64)
-    if len(free_lin) and (free_lin.min() < 0 or free_lin.max() >= box.size):
-        raise AssertionError("ray left its bounding box")  # cannot happen: margin covers DDA overshoot
     if box.size <= _BITMAP_MAX_CELLS:
         mark = np.zeros(box.size, dtype=np.uint8)
-        mark[free_lin] = 1
+        free_lin = _ray_cells(origin32, ray_ends, res, box, key_origin, mark=mark)
+        if free_lin is not None:
+            _check_in_box(free_lin, box)
+            mark[free_lin] = 1
         mark[occ_lin] = 2                          # occupied wins
         free_u = np.flatnonzero(mark == 1)
         occ_u = np.flatnonzero(mark == 2)
     else:
+        free_lin = _ray_cells(origin32, ray_ends, res, box, key_origin)
+        _check_in_box(free_lin, box)
         occ_u = np.unique(occ_lin)
         free_u = np.setdiff1d(np.unique(free_lin), occ_u, assume_unique=True)
     return KeySets(free=box.keys(free_u), occupied=box.keys(occ_u), n_rays=n_rays, n_endpoints=len(occ_u))

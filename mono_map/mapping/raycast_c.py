@@ -1,0 +1,157 @@
+"""Optional compiled kernel for the DDA of :mod:`mono_map.mapping.raycast` (same cells, ~20× faster).
+
+The C source below is OctoMap 1.10's ``computeRayKeys`` transcribed with the same types
+(``float`` points and direction, ``double`` tMax/tDelta), emitting linear box indices. It is
+compiled on first use with the system C compiler into a cache directory
+(``$MONO_MAP_CACHE`` or ``~/.cache/mono_map``) and loaded with ctypes. Without a compiler (or with
+``MONO_MAP_NO_C=1``) the numpy implementation is used; the tests check both give the same cells.
+Compiled with ``-ffp-contract=off`` and no ``-ffast-math`` so the float arithmetic is IEEE, as in
+OctoMap's own build.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+C_SOURCE = r"""
+#include <math.h>
+#include <float.h>
+#include <stdint.h>
+
+/* computeRayKeys(origin, end) for n ends. With mark == NULL: writes the linear indices to out
+   (the origin cell first for every ray that leaves it) and returns their number, or -1 if cap is
+   too small. With mark (of cap bytes): sets mark[index] = 1 instead and returns the number of cells
+   visited, or -2 if an index falls outside the mark array. */
+#define EMIT(x) do { if (mark) { if ((x) < 0 || (x) >= cap) return -2; mark[(x)] = 1; ++off; } else { if (off >= cap) return -1; out[off++] = (x); } } while (0)
+int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float *ends,
+                     const int64_t *key_ends, int64_t n, double res, const int64_t *lo,
+                     const int64_t *strides, int64_t tree_max_val, int64_t *out, int64_t cap,
+                     uint8_t *mark)
+{
+    int64_t off = 0;
+    const int64_t lin_o = (key_origin[0] - lo[0]) * strides[0] + (key_origin[1] - lo[1]) * strides[1]
+                          + (key_origin[2] - lo[2]) * strides[2];
+    for (int64_t i = 0; i < n; ++i) {
+        const float *e = ends + 3 * i;
+        const int64_t *ke = key_ends + 3 * i;
+        if (ke[0] == key_origin[0] && ke[1] == key_origin[1] && ke[2] == key_origin[2])
+            continue;
+        EMIT(lin_o);
+        float d[3] = {e[0] - origin[0], e[1] - origin[1], e[2] - origin[2]};
+        float nsq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        float length = (float) sqrt((double) nsq);
+        d[0] /= length; d[1] /= length; d[2] /= length;
+        int step[3];
+        double tMax[3], tDelta[3];
+        int64_t cur[3] = {key_origin[0], key_origin[1], key_origin[2]};
+        for (int a = 0; a < 3; ++a) {
+            if (d[a] > 0.0) step[a] = 1;
+            else if (d[a] < 0.0) step[a] = -1;
+            else step[a] = 0;
+            if (step[a] != 0) {
+                double border = ((double) ((int) cur[a] - (int) tree_max_val) + 0.5) * res;
+                border += (float) (step[a] * res * 0.5);
+                tMax[a] = (border - (double) origin[a]) / (double) d[a];
+                tDelta[a] = res / fabs((double) d[a]);
+            } else {
+                tMax[a] = DBL_MAX;
+                tDelta[a] = DBL_MAX;
+            }
+        }
+        int64_t lin = lin_o;
+        const int64_t dl[3] = {step[0] * strides[0], step[1] * strides[1], step[2] * strides[2]};
+        for (;;) {
+            int dim;
+            if (tMax[0] < tMax[1]) dim = (tMax[0] < tMax[2]) ? 0 : 2;
+            else dim = (tMax[1] < tMax[2]) ? 1 : 2;
+            cur[dim] += step[dim];
+            tMax[dim] += tDelta[dim];
+            lin += dl[dim];
+            if (cur[0] == ke[0] && cur[1] == ke[1] && cur[2] == ke[2]) break;
+            double dist = tMax[0] < tMax[1] ? tMax[0] : tMax[1];
+            dist = dist < tMax[2] ? dist : tMax[2];
+            if (dist > (double) length) break;
+            EMIT(lin);
+        }
+    }
+    return off;
+}
+"""
+
+_LIB = None
+_TRIED = False
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get("MONO_MAP_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "mono_map"
+
+
+def load_kernel():
+    """The compiled ``mm_ray_cells`` (ctypes function) or None if unavailable/disabled."""
+    global _LIB, _TRIED
+    if os.environ.get("MONO_MAP_NO_C", "0") == "1":
+        return None
+    if _TRIED:
+        return _LIB
+    _TRIED = True
+    digest = hashlib.sha1(C_SOURCE.encode()).hexdigest()[:12]
+    lib_path = _cache_dir() / f"mm_dda_{digest}_{sys.implementation.cache_tag}.so"
+    try:
+        if not lib_path.is_file():
+            lib_path.parent.mkdir(parents=True, exist_ok=True)
+            cc = os.environ.get("CC", "cc")
+            with tempfile.TemporaryDirectory() as tmp:
+                src = Path(tmp) / "mm_dda.c"
+                src.write_text(C_SOURCE)
+                tmp_so = Path(tmp) / "mm_dda.so"
+                subprocess.run([cc, "-O2", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math",
+                                "-o", str(tmp_so), str(src), "-lm"],
+                               check=True, capture_output=True, timeout=120)
+                os.replace(tmp_so, lib_path)
+        lib = ctypes.CDLL(str(lib_path))
+        fn = lib.mm_ray_cells
+        p = ctypes.c_void_p
+        fn.argtypes = [p, p, p, p, ctypes.c_int64, ctypes.c_double, p, p, ctypes.c_int64, p, ctypes.c_int64, p]
+        fn.restype = ctypes.c_int64
+        _LIB = fn
+    except (OSError, subprocess.SubprocessError) as exc:
+        print(f"mono-map: note: compiled ray kernel unavailable ({type(exc).__name__}); using numpy", file=sys.stderr)
+        _LIB = None
+    return _LIB
+
+
+def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.ndarray, key_ends: np.ndarray,
+                resolution: float, lo: np.ndarray, strides: np.ndarray, tree_max_val: int,
+                mark: np.ndarray | None = None) -> np.ndarray | int:
+    """Run the kernel; returns linear box indices (int64, with repeats), or with ``mark`` (uint8
+    bitmap over the box) sets ``mark[index] = 1`` and returns the number of cells visited."""
+    o = np.ascontiguousarray(origin32, dtype=np.float32)
+    ko = np.ascontiguousarray(key_origin, dtype=np.int64)
+    e = np.ascontiguousarray(ends32, dtype=np.float32)
+    ke = np.ascontiguousarray(key_ends, dtype=np.int64)
+    lo = np.ascontiguousarray(lo, dtype=np.int64)
+    st = np.ascontiguousarray(strides, dtype=np.int64)
+    if mark is not None:
+        assert mark.dtype == np.uint8 and mark.flags.c_contiguous
+        n = int(fn(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, len(e), float(resolution),
+                   lo.ctypes.data, st.ctypes.data, int(tree_max_val), None, len(mark), mark.ctypes.data))
+        if n < 0:
+            raise AssertionError("ray left its bounding box")  # cannot happen: the margin covers DDA overshoot
+        return n
+    cap = int(np.abs(ke - ko[None, :]).sum()) + 8 * len(e) + 16
+    while True:
+        out = np.empty(cap, dtype=np.int64)
+        n = fn(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, len(e), float(resolution),
+               lo.ctypes.data, st.ctypes.data, int(tree_max_val), out.ctypes.data, cap, None)
+        if n >= 0:
+            return out[:n]
+        cap *= 2

@@ -1,0 +1,198 @@
+"""Exact batched integration vs OctoMap's own insertPointCloud / graph2tree / compare_octrees."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+
+import numpy as np
+import octomap
+import pytest
+
+from mono_map.config import OctoMapConfig
+from mono_map.eval.map_metrics import compare_leaves, morton_codes, tree_leaves
+from mono_map.mapping import raycast, raycast_c
+from mono_map.mapping.integrate import MapIntegrator, exact_increments
+from mono_map.mapping.scangraph import write_scan_graph
+
+
+def random_scans(seed: int, n_frames: int = 3, n_points: int = 1500):
+    """Clouds around a moving origin: a noisy 'room' (box walls) plus random far points."""
+    rng = np.random.default_rng(seed)
+    scans = []
+    for i in range(n_frames):
+        origin = np.array([0.7 * i, 0.0, 1.5]) + rng.uniform(-0.3, 0.3, 3)
+        d = rng.normal(size=(n_points, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        r = rng.uniform(1.0, 9.0, n_points)
+        r[: n_points // 3] = 6.0 / np.maximum(np.abs(d[: n_points // 3, 0]), 0.3)  # a wall-ish band
+        scans.append((origin + d * r[:, None], origin))
+    return scans
+
+
+def octree_sets(tree, res):
+    """Finest cells of a tree: dict Morton code -> log-odds (pruned leaves expanded)."""
+    leaves = tree_leaves(tree)
+    codes, leaf = leaves.expand()
+    return dict(zip(codes.tolist(), leaves.value[leaf].tolist()))
+
+
+def key_codes(keys):
+    return set(morton_codes(keys).tolist())
+
+
+@pytest.fixture(params=["c", "numpy"])
+def kernel(request, monkeypatch):
+    """Run a test with the compiled DDA kernel and with the numpy fallback."""
+    if request.param == "numpy":
+        monkeypatch.setenv("MONO_MAP_NO_C", "1")
+    else:
+        if raycast_c.load_kernel() is None:
+            pytest.fail("the compiled kernel must build here (gcc is part of the machine)")
+    yield request.param
+
+
+@pytest.mark.parametrize("max_range", [-1.0, 6.0])
+def test_key_sets_equal_insertPointCloud(kernel, max_range):
+    res = 0.2
+    for points, origin in random_scans(1, n_frames=2):
+        ks = raycast.compute_update(points, origin, res, max_range=max_range)
+        tree = octomap.OcTree(res)
+        tree.insertPointCloud(points, origin, maxrange=max_range, discretize=True)
+        cells = octree_sets(tree, res)
+        free = {k for k, v in cells.items() if v < 0}
+        occ = {k for k, v in cells.items() if v > 0}
+        assert key_codes(ks.free) == free
+        assert key_codes(ks.occupied) == occ
+        assert not (free & occ)
+
+
+def test_non_discretized_rays_match(kernel):
+    """computeUpdate without discretisation (the raw end points) as well."""
+    res = 0.25
+    points, origin = random_scans(5, n_frames=1, n_points=800)[0]
+    ks = raycast.compute_update(points, origin, res, discretize_points=False)
+    tree = octomap.OcTree(res)
+    tree.insertPointCloud(points, origin, discretize=False)
+    cells = octree_sets(tree, res)
+    assert key_codes(ks.free) == {k for k, v in cells.items() if v < 0}
+    assert key_codes(ks.occupied) == {k for k, v in cells.items() if v > 0}
+
+
+def test_batched_map_equals_insertPointCloud(kernel):
+    """Several frames, non-default sensor model: same cells, same states, same memory."""
+    cfg = OctoMapConfig(resolution=0.2, prob_hit=0.75, prob_miss=0.35)
+    fast = MapIntegrator(cfg)
+    ref = MapIntegrator(cfg, method="insertPointCloud")
+    for points, origin in random_scans(2, n_frames=4):
+        fast.insert(points, origin)
+        ref.insert(points, origin)
+    a, b = fast.tree, ref.tree
+    cells_a, cells_b = octree_sets(a, 0.2), octree_sets(b, 0.2)
+    assert cells_a.keys() == cells_b.keys()
+    same_state = sum((cells_a[k] >= 0) == (cells_b[k] >= 0) for k in cells_a) / len(cells_a)
+    assert same_state >= 0.999
+    assert all(cells_a[k] == cells_b[k] for k in cells_a)          # exact log-odds, in fact
+    assert abs(a.memoryUsage() - b.memoryUsage()) <= 0.01 * b.memoryUsage()
+    assert a.getNumLeafNodes() == b.getNumLeafNodes()
+
+
+def test_changed_cells_reported():
+    fast = MapIntegrator(OctoMapConfig(resolution=0.2))
+    origin = np.zeros(3)
+    wall = np.array([[0.1, 0.1, 5.1]])
+    r1 = fast.insert(wall, origin)
+    assert len(r1.became_occupied) == 1 and np.allclose(r1.became_occupied[0], [0.1, 0.1, 5.1])
+    r2 = fast.insert(wall, origin)
+    assert len(r2.became_occupied) == 0                            # already occupied
+    # the wall moves back: its old cell is now on a ray; after enough misses it stops being occupied
+    freed = []
+    for _ in range(6):
+        freed += list(fast.insert(np.array([[0.1, 0.1, 9.1]]), origin).stopped_occupied)
+    assert len(freed) == 1 and np.allclose(freed[0], [0.1, 0.1, 5.1])
+    assert fast.tree.getLabels(np.array([[0.1, 0.1, 5.1]]))[0] == 0
+
+
+def test_exact_increments_reach_targets():
+    rng = np.random.default_rng(0)
+    old = rng.uniform(-2, 3.5, 10000).astype(np.float32)
+    old[:100] = np.nan
+    new = rng.uniform(-2, 3.5, 10000).astype(np.float32)
+    first, second = exact_increments(old, new)
+    base = np.where(np.isnan(old), np.float32(0), old)
+    v = (base + first).astype(np.float32)
+    two = ~np.isnan(second)
+    v[two] = (v[two] + second[two]).astype(np.float32)
+    assert np.array_equal(v, new)
+
+
+@pytest.mark.skipif(shutil.which("compare_octrees") is None, reason="octomap-tools missing")
+def test_compare_octrees_and_graph2tree_agree(tmp_path):
+    """OctoMap's C++ tools: graph2tree builds the same tree; compare_octrees finds KLD 0 and equal size."""
+    scans = random_scans(3, n_frames=3)
+    fast = MapIntegrator()
+    for p, o in scans:
+        fast.insert(p, o)
+    ours = tmp_path / "ours.ot"
+    assert fast.tree.write(str(ours).encode())
+    write_scan_graph(tmp_path / "s.graph", scans)
+    subprocess.run(["graph2tree", "-i", str(tmp_path / "s.graph"), "-o", str(tmp_path / "g.bt"), "-res", "0.2",
+                    "-g", "-discretize"], check=True, capture_output=True)
+    out = subprocess.run(["compare_octrees", str(ours), str(tmp_path / "g.bt.ot")], capture_output=True,
+                         text=True, check=True).stdout
+    n_expanded = int(out.split("Expanded num. leafs:")[1].split()[0])
+    kld = float(out.split("KLD:")[1].split()[0])
+    assert kld == 0.0
+    # the tool's expanded leaf count = the finest known cells our metrics count
+    assert n_expanded == tree_leaves(fast.tree).cells
+
+
+@pytest.mark.skipif(shutil.which("eval_octree_accuracy") is None, reason="octomap-tools missing")
+def test_eval_octree_accuracy_counts(tmp_path):
+    """eval_octree_accuracy builds a map from scans 1-4 (not 5) and scores scan 5's cells:
+    our ray casting + getLabels must give its correct / wrong / unknown counts."""
+    scans = random_scans(4, n_frames=5, n_points=1200)
+    write_scan_graph(tmp_path / "s.graph", scans, local=True)
+    out = subprocess.run(["eval_octree_accuracy", str(tmp_path / "s.graph"), "-res", "0.2"],
+                         capture_output=True, text=True, check=True).stdout
+    tail = out.split("Voxels correct:")[1]
+    correct = int(tail.split()[0])
+    wrong = int(tail.split("#wrong:")[1].split()[0])
+    unknown = int(tail.split("#unknown:")[1].split(".")[0])
+    # the tool adds the origin back to the stored local points in float32
+    world = [((p.astype(np.float32) - o.astype(np.float32)) + o.astype(np.float32), o) for p, o in scans]
+    tree = octomap.OcTree(0.2)
+    for p, o in world[:4]:
+        tree.insertPointCloud(p.astype(np.float64), o, discretize=False)
+    ks = raycast.compute_update(world[4][0].astype(np.float64), world[4][1], 0.2, discretize_points=False)
+    lf = tree.getLabels(raycast.key_to_coord(ks.free, 0.2))
+    lo = tree.getLabels(raycast.key_to_coord(ks.occupied, 0.2))
+    assert (int((lf == 0).sum() + (lo == 1).sum()), int((lf == 1).sum() + (lo == 0).sum()),
+            int((lf < 0).sum() + (lo < 0).sum())) == (correct, wrong, unknown)
+
+
+def test_hand_built_metrics():
+    """Volume weighting: a pruned block counts as its 8 cells; unknown in the map counts as wrong."""
+    res = 1.0
+    ref = octomap.OcTree(res)
+    block = np.array([[x + 0.5, y + 0.5, z + 0.5] for x in (0, 1) for y in (0, 1) for z in (0, 1)])
+    for _ in range(3):
+        ref.updateNodes(block.tolist(), False)                  # 8 free cells -> pruned into one leaf
+    ref.updateNodes([[5.5, 0.5, 0.5], [6.5, 0.5, 0.5]], True)   # 2 occupied
+    m = octomap.OcTree(res)
+    m.updateNodes([[0.5, 0.5, 0.5]], True)                     # wrong (free in ref)
+    m.updateNodes([[1.5, 0.5, 0.5], [1.5, 1.5, 1.5]], False)   # right
+    m.updateNodes([[5.5, 0.5, 0.5]], True)                     # right
+    m.updateNodes([[20.5, 0.5, 0.5]], True)                    # outside the reference: ignored
+    r = compare_leaves(tree_leaves(m), tree_leaves(ref))
+    assert tree_leaves(ref).length.max() == 8
+    assert r["ref_known_cells"] == 10 and r["ref_occupied_cells"] == 2
+    assert r["covered_cells"] == 4 and r["correct_cells"] == 3
+    assert r["accuracy"] == pytest.approx(0.3)
+    assert r["coverage"] == pytest.approx(0.4)
+    assert r["accuracy_covered"] == pytest.approx(0.75)
+    assert r["precision"] == pytest.approx(0.5) and r["recall"] == pytest.approx(0.5)
+    # brute force with getLabels on the reference's finest cells
+    cells = np.concatenate([block, [[5.5, 0.5, 0.5], [6.5, 0.5, 0.5]]])
+    ref_state = ref.getLabels(cells)
+    assert (m.getLabels(cells) == ref_state).mean() == pytest.approx(r["accuracy"])
