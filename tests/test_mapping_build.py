@@ -1,0 +1,204 @@
+"""Geometry, selection and the build/eval commands on the tiny synthetic sequence; bad inputs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mono_map import geometry
+from mono_map.cli import main as cli_main
+from mono_map.config import OctoMapConfig
+from mono_map.data.kitti import open_sequence
+from mono_map.depth.inference import DepthPrediction
+from mono_map.errors import MonoMapError
+from mono_map.mapping.build import build_map, parse_frames
+from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.oracle import NoisyGroundTruthPredictor
+from mono_map.mapping.points import camera_origin, in_camera_fov, lidar_to_world, pixels_to_world
+from mono_map.mapping.select import select_pixels
+
+K = np.array([[700.0, 0, 600.0], [0, 700.0, 180.0], [0, 0, 1]])
+
+
+def test_backprojection_inverts_projection():
+    rng = np.random.default_rng(0)
+    H, W = 40, 60
+    depth = rng.uniform(1, 80, (H, W)).astype(np.float32)
+    mask = rng.random((H, W)) < 0.5
+    pts = pixels_to_world(depth, mask, K, np.eye(4))
+    uv, z = geometry.project_points(K, pts)
+    v, u = np.nonzero(mask)
+    assert np.allclose(uv, np.stack([u, v], 1), atol=1e-6)
+    assert np.allclose(z, depth[mask], rtol=1e-6)
+
+
+def test_hand_built_pose_places_point():
+    # camera 2 m above the world origin looking along world +x: cam z -> world x, cam x -> world -y,
+    # cam y (down) -> world -z
+    R = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=float)
+    T = geometry.make_pose(R, [0, 0, 2.0])
+    depth = np.zeros((360, 1200), np.float32)
+    depth[180, 600] = 10.0            # principal point
+    depth[180, 670] = 10.0            # 70 px right = 1 m right at 10 m
+    mask = depth > 0
+    pts = pixels_to_world(depth, mask, K, T)
+    assert np.allclose(pts, [[10, 0, 2], [10, -1, 2]], atol=1e-9)
+    assert np.allclose(camera_origin(T), [0, 0, 2])
+
+
+def test_lidar_fov_and_origin():
+    T_cam2_velo = geometry.make_pose(np.array([[0, -1, 0], [0, 0, -1], [1, 0, 0]], float), [0.1, -0.2, -0.3])
+    scan = np.array([[10, 0, 0, 1], [-10, 0, 0, 1], [10, 30, 0, 1]], np.float32)  # ahead, behind, far left
+    ok = in_camera_fov(scan, T_cam2_velo, K, 360, 1200)
+    assert ok.tolist() == [True, False, False]
+    T_world_cam2 = geometry.make_pose(None, [5, 0, 0])
+    pts, origin = lidar_to_world(scan, T_world_cam2, T_cam2_velo, fov_only=True, K=K, image_size=(360, 1200))
+    assert len(pts) == 1
+    assert np.allclose(origin, (T_world_cam2 @ T_cam2_velo)[:3, 3])
+
+
+def test_wall_ten_metres_ahead():
+    """A wall 10 m ahead: free cells before it, occupied at it, unknown behind."""
+    H, W = 360, 1200
+    depth = np.full((H, W), 10.0, np.float32)
+    mask = np.zeros((H, W), bool)
+    mask[150:210:4, 560:640:4] = True
+    integ = MapIntegrator(OctoMapConfig(resolution=0.2))
+    T = geometry.make_pose(None, [0.05, 0.03, 0.07])
+    pts = pixels_to_world(depth, mask, K, T)
+    integ.insert(pts, camera_origin(T))
+    z = np.arange(0.5, 12.0, 0.2) + 0.07
+    labels = integ.tree.getLabels(np.stack([np.full_like(z, 0.05), np.full_like(z, 0.03), z], 1))
+    assert (labels[z < 9.8] == 0).all()
+    assert labels[np.argmin(np.abs(z - 10.07))] == 1
+    assert (labels[z > 10.4] == -1).all()
+
+
+@pytest.mark.parametrize("keep", [0.3, 0.8, 1.0, 0.123])
+def test_keep_fraction_exact(keep):
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.5, 90, (50, 70)).astype(np.float32)
+    depth[0, :10] = np.nan
+    entropy = rng.random((50, 70)).astype(np.float32)
+    kept, valid = select_pixels(depth, entropy, keep, 1.0, 80.0, return_valid=True)
+    assert kept.sum() == round(keep * valid.sum())
+    assert not (kept & ~valid).any()
+    if keep < 1:  # the kept pixels are the lowest-entropy ones
+        assert entropy[kept].max() <= entropy[valid & ~kept].min()
+    kept2 = select_pixels(depth, entropy, keep, 1.0, 80.0, stride=3)
+    grid = np.zeros_like(kept2)
+    grid[::3, ::3] = True
+    assert not (kept2 & ~grid).any()
+
+
+def test_parse_frames():
+    assert parse_frames(None, 4541)[0] == range(0, 500)
+    assert "first 500" in parse_frames(None, 4541)[1]
+    assert parse_frames("all", 10)[0] == range(0, 10)
+    assert parse_frames("2:5", 10)[0] == range(2, 5)
+    for bad in ("5:2", "x", "0:99"):
+        with pytest.raises(MonoMapError, match="--frames"):
+            parse_frames(bad, 10)
+
+
+class Recorder:
+    def __init__(self):
+        self.updates, self.closed = [], False
+
+    def __call__(self, upd):
+        self.updates.append(upd)
+
+    def close(self):
+        self.closed = True
+
+
+def test_build_mono_oracle_observers(tiny_root):
+    seq = open_sequence(tiny_root, "tiny", generate=False)
+    rec = Recorder()
+    res = build_map(seq, "mono", 0.5, frames=range(0, 2), stride=4, predictor=NoisyGroundTruthPredictor(),
+                    observers=[rec], show_progress=False)
+    assert rec.closed and [u.index for u in rec.updates] == [0, 1]
+    u = rec.updates[0]
+    assert u.keep_mask.shape == seq.image_size and u.depth.shape == seq.image_size
+    assert len(u.points_world) == u.keep_mask.sum() == u.stats["n_points"]
+    assert abs(u.stats["kept_fraction"] - 0.5) < 1e-3
+    assert np.allclose(u.origin, seq.T_world_cam2(0)[:3, 3])
+    assert len(u.occupied_keys_changed) > 0
+    # every cell reported as newly occupied in frame 0 is occupied after frame 0 ... and in the end
+    # unless freed later
+    freed = {tuple(np.round(c, 3)) for c in rec.updates[1].freed_keys_changed}
+    still = [c for c in u.occupied_keys_changed if tuple(np.round(c, 3)) not in freed]
+    assert (res.tree.getLabels(np.array(still)) == 1).all()
+    assert res.stats["points_kept"] == sum(len(x.points_world) for x in rec.updates)
+    assert res.stats["memory_mb"] > 0 and res.stats["leaf_count"] == res.tree.getNumLeafNodes()
+
+
+def test_cli_build_and_eval(tiny_root, tmp_path, capsys):
+    out = tmp_path / "maps"
+    common = ["--seq", "tiny", "--data-root", str(tiny_root), "--frames", "0:3", "--out", str(out)]
+    assert cli_main(["build", "--source", "lidar-fov", *common]) == 0
+    assert cli_main(["build", "--source", "mono", "--model", "oracle", "--keep", "0.8", "--stride", "4", *common]) == 0
+    bts = sorted(out.glob("*.bt"))
+    assert [p.name for p in bts] == ["lidar-fov_res0.2_f0-3.bt", "mono-keep0.8_model-oracle_stride4_res0.2_f0-3.bt"]
+    stats = json.loads(bts[1].with_suffix(".json").read_text())["stats"]
+    assert stats["n_frames"] == 3 and stats["points_kept"] > 0 and stats["frames_per_s"] > 0
+    assert not list(out.glob(".*tmp*"))
+    capsys.readouterr()
+    js = tmp_path / "m.json"
+    assert cli_main(["eval", "--map", str(bts[1]), "--reference", str(bts[0]), "--json", str(js)]) == 0
+    text = capsys.readouterr().out
+    assert "accuracy" in text and "coverage" in text
+    m = json.loads(js.read_text())
+    assert 0 < m["accuracy"] <= m["accuracy_covered"] <= 1 and 0 < m["coverage"] <= 1
+    # the reference against itself is perfect
+    assert cli_main(["eval", "--map", str(bts[0]), "--reference", str(bts[0]), "--json", str(js)]) == 0
+    assert json.loads(js.read_text())["accuracy"] == 1.0
+
+
+class BadPredictor:
+    def __init__(self, kind):
+        self.kind = kind
+
+    def predict(self, image):
+        h, w = image.shape[:2]
+        depth = np.full((h, w), 10.0, np.float32)
+        if self.kind == "nan":
+            depth[5, 5] = np.nan
+        if self.kind == "empty":
+            depth[:] = 0.0
+        return DepthPrediction(depth=depth, entropy=np.ones((h, w), np.float32))
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--keep", "0"], "--keep"),
+    (["--keep", "1.5"], "--keep"),
+    (["--source", "radar"], "--source"),
+    (["--model", "/nonexistent/model.pt"], "model.pt"),
+    (["--res", "-1"], "--res"),
+])
+def test_cli_bad_inputs_write_nothing(tiny_root, tmp_path, capsys, argv, message):
+    out = tmp_path / "maps"
+    rc = cli_main(["build", "--seq", "tiny", "--data-root", str(tiny_root), "--frames", "0:2", "--out", str(out), *argv])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("kind, message", [("nan", "NaN"), ("empty", "empty frame")])
+def test_bad_predictions(tiny_root, kind, message):
+    seq = open_sequence(tiny_root, "tiny", generate=False)
+    rec = Recorder()
+    with pytest.raises(MonoMapError, match=message):
+        build_map(seq, "mono", 0.8, frames=range(0, 1), predictor=BadPredictor(kind), observers=[rec],
+                  show_progress=False)
+    assert rec.closed
+
+
+def test_eval_bad_map(tmp_path):
+    bad = tmp_path / "x.bt"
+    bad.write_text("not a tree")
+    assert cli_main(["eval", "--map", str(bad), "--reference", str(bad)]) == 2
+    assert cli_main(["eval", "--map", str(tmp_path / "missing.bt"), "--reference", str(bad)]) == 2
