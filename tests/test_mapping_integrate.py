@@ -79,10 +79,13 @@ def test_non_discretized_rays_match(kernel):
     assert key_codes(ks.occupied) == {k for k, v in cells.items() if v > 0}
 
 
-def test_batched_map_equals_insertPointCloud(kernel):
-    """Several frames, non-default sensor model: same cells, same states, same memory."""
+@pytest.mark.parametrize("sync", ["rebuild", "incremental"])
+def test_batched_map_equals_insertPointCloud(kernel, sync, monkeypatch):
+    """Several frames, non-default sensor model, the tree synced after every frame either by
+    rebuilding it from a .ot stream or by bulk updates: same cells, states, log-odds and memory."""
+    monkeypatch.setattr(MapIntegrator, "REBUILD_RATIO", 0.0 if sync == "rebuild" else 1e9)
     cfg = OctoMapConfig(resolution=0.2, prob_hit=0.75, prob_miss=0.35)
-    fast = MapIntegrator(cfg)
+    fast = MapIntegrator(cfg, sync_every=1)
     ref = MapIntegrator(cfg, method="insertPointCloud")
     for points, origin in random_scans(2, n_frames=4):
         fast.insert(points, origin)
@@ -95,6 +98,8 @@ def test_batched_map_equals_insertPointCloud(kernel):
     assert all(cells_a[k] == cells_b[k] for k in cells_a)          # exact log-odds, in fact
     assert abs(a.memoryUsage() - b.memoryUsage()) <= 0.01 * b.memoryUsage()
     assert a.getNumLeafNodes() == b.getNumLeafNodes()
+    assert a.write() == b.write()                                   # byte-identical .ot
+    assert (getattr(fast, "rebuilds", 0) > 0) == (sync == "rebuild")
 
 
 def test_changed_cells_reported():

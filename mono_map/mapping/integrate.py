@@ -210,7 +210,8 @@ class MapIntegrator:
     the exact float32 increment that takes the octree's value to the mirror's (cells grouped by
     increment, one ``updateNodes`` call per group). Cells are independent and OctoMap prunes
     whenever children become equal, so the synced tree equals, node for node, the tree that
-    frame-by-frame ``insertPointCloud`` builds.
+    frame-by-frame ``insertPointCloud`` builds. When many cells changed, the tree is instead
+    rebuilt from the mirror in one go (:mod:`mono_map.mapping.octree_io`), which gives the same tree.
     method="insertPointCloud": octomap-python's own ``insertPointCloud(discretize=True)`` per frame
     (reference/benchmark; changed-cell lists are then empty).
     """
@@ -298,23 +299,39 @@ class MapIntegrator:
         flipped = (is_occ & ~was_occ) if occupied else (was_occ & ~is_occ)
         return len(idx), key_to_coord(keys[change][flipped], self.cfg.resolution)
 
+    # measured here: a full rebuild costs ~0.4 µs per known cell, bulk updates ~2.5 µs per changed cell
+    REBUILD_RATIO = 0.15
+
     def sync(self) -> float:
-        """Bring the octree up to the mirror; returns seconds spent."""
+        """Bring the octree up to the mirror; returns seconds spent.
+
+        Few changed cells: exact increments through ``updateNodes``. Many (relative to the map):
+        rebuild the whole tree from the mirror in one ``.ot`` stream (:mod:`octree_io`) — the same tree.
+        """
         import time
 
         if self.mirror is None or not self._pending:
             return 0.0
         t0 = time.perf_counter()
-        used = self.mirror.n_blocks * self.mirror.CELLS
-        idx = np.flatnonzero(self.mirror.dirty[:used])
-        self.mirror.dirty[idx] = False
+        m = self.mirror
+        used = m.n_blocks * m.CELLS
+        idx = np.flatnonzero(m.dirty[:used])
+        m.dirty[idx] = False
         self._pending = False
-        new = self.mirror.pool[idx]
-        old = self.mirror.synced[idx]
+        new = m.pool[idx]
+        old = m.synced[idx]
         moved = ~(new == old)                       # NaN old (absent) counts as moved
         idx, new, old = idx[moved], new[moved], old[moved]
-        if len(idx):
-            keys = self.mirror.keys_of(idx)
+        self.n_known = getattr(self, "n_known", 0) + int(np.isnan(old).sum())
+        if len(idx) > self.REBUILD_RATIO * self.n_known:
+            from mono_map.mapping.octree_io import octree_from_cells
+
+            known = np.flatnonzero(~np.isnan(m.pool[:used]))
+            self._tree = octree_from_cells(m.keys_of(known), m.pool[known], self.cfg)
+            m.synced[:used] = m.pool[:used]
+            self.rebuilds = getattr(self, "rebuilds", 0) + 1
+        elif len(idx):
+            keys = m.keys_of(idx)
             order = morton_order(keys)             # tree locality: several times faster updates
             keys, new, old, idx = keys[order], new[order], old[order], idx[order]
             first, second = exact_increments(old, new)
@@ -323,7 +340,7 @@ class MapIntegrator:
             two = ~np.isnan(second)
             if two.any():
                 self._update_grouped(centres[two], second[two])
-            self.mirror.synced[idx] = new
+            m.synced[idx] = new
         dt = time.perf_counter() - t0
         self.sync_seconds += dt
         return dt

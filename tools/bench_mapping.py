@@ -1,0 +1,165 @@
+#!/usr/bin/env python3
+"""Benchmark map integration on the same scans: octomap-python's insertPointCloud vs mono-map's
+batched exact path vs OctoMap's C++ graph2tree (Debian octomap-tools), in one run.
+
+    .venv/bin/python tools/bench_mapping.py --seq 00 --source lidar --frames 0:30
+    .venv/bin/python tools/bench_mapping.py --seq 00 --source mono --model oracle --frames 0:10
+
+All scans are loaded (and, for mono, predicted/selected/back-projected) first; only integration is
+timed. Every method runs with discretize=True (graph2tree: -discretize) and OctoMap's defaults.
+Prints times, speed-up ratios, and how far the maps agree (cell states at the finest resolution
+over the union of known cells, exact log-odds, memoryUsage, leaf count).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mono_map.config import OctoMapConfig  # noqa: E402
+from mono_map.data.kitti import open_sequence  # noqa: E402
+from mono_map.eval.map_metrics import tree_leaves  # noqa: E402
+from mono_map.mapping.build import parse_frames  # noqa: E402
+from mono_map.mapping.integrate import MapIntegrator  # noqa: E402
+from mono_map.mapping.points import camera_origin, pixels_to_world  # noqa: E402
+from mono_map.mapping.reference import lidar_measurement  # noqa: E402
+from mono_map.mapping.scangraph import write_scan_graph  # noqa: E402
+from mono_map.mapping.select import select_pixels  # noqa: E402
+
+
+def load_scans(args) -> list[tuple[np.ndarray, np.ndarray]]:
+    seq = open_sequence(args.data_root, args.seq)
+    frames, desc = parse_frames(args.frames, len(seq))
+    print(f"sequence {args.seq}, {desc}, source {args.source}")
+    scans = []
+    predictor = None
+    if args.source == "mono":
+        from mono_map.mapping.commands import _make_predictor
+
+        predictor = _make_predictor(args.model)
+    for i in frames:
+        if args.source == "mono":
+            image = seq.image(i)
+            pred = predictor.predict_frame(seq, i, image) if hasattr(predictor, "predict_frame") else predictor.predict(image)
+            mask = select_pixels(pred.depth, pred.entropy, args.keep, 1.0, 80.0, stride=args.stride)
+            T = seq.T_world_cam2(i)
+            scans.append((pixels_to_world(pred.depth, mask, seq.calib.K2, T), camera_origin(T)))
+        else:
+            scans.append(lidar_measurement(seq, i, args.source))
+    return scans
+
+
+def cell_table(tree):
+    leaves = tree_leaves(tree)
+    codes, leaf = leaves.expand()
+    return codes, leaves.value[leaf]
+
+
+def agreement(a, b) -> dict:
+    ca, va = cell_table(a)
+    cb, vb = cell_table(b)
+    union = np.union1d(ca, cb)
+    sa = np.full(len(union), -1, np.int8)
+    sb = np.full(len(union), -1, np.int8)
+    sa[np.searchsorted(union, ca)] = (va >= 0).astype(np.int8)
+    sb[np.searchsorted(union, cb)] = (vb >= 0).astype(np.int8)
+    same_values = len(ca) == len(cb) and np.array_equal(ca, cb) and np.array_equal(va, vb)
+    ma, mb = a.memoryUsage(), b.memoryUsage()
+    return {"cells": len(union), "state_agreement": float((sa == sb).mean()), "identical_log_odds": bool(same_values),
+            "memory_a": ma, "memory_b": mb, "memory_diff": abs(ma - mb) / mb,
+            "leaves_a": a.getNumLeafNodes(), "leaves_b": b.getNumLeafNodes()}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seq", default="00")
+    p.add_argument("--data-root", default=None)
+    p.add_argument("--source", default="lidar", choices=["lidar", "lidar-fov", "mono"])
+    p.add_argument("--frames", default="0:20")
+    p.add_argument("--keep", type=float, default=0.8)
+    p.add_argument("--stride", type=int, default=1)
+    p.add_argument("--model", default="oracle", help="mono only: checkpoint or 'oracle' (noisy ground truth)")
+    p.add_argument("--res", type=float, default=0.2)
+    p.add_argument("--numpy", action="store_true", help="also time the numpy DDA (no compiled kernel)")
+    args = p.parse_args(argv)
+    cfg = OctoMapConfig(resolution=args.res)
+
+    scans = load_scans(args)
+    n_pts = sum(len(s[0]) for s in scans)
+    print(f"{len(scans)} scans, {n_pts:,} points ({n_pts / len(scans):,.0f} per scan), {args.res} m cells\n")
+
+    results = {}
+    ref = MapIntegrator(cfg, method="insertPointCloud")
+    t0 = time.perf_counter()
+    for pts, o in scans:
+        ref.insert(pts, o)
+    results["insertPointCloud"] = time.perf_counter() - t0
+
+    fast = MapIntegrator(cfg)
+    t0 = time.perf_counter()
+    for pts, o in scans:
+        fast.insert(pts, o)
+    fast.sync()
+    results["batched"] = time.perf_counter() - t0
+    fast_tree = fast.tree
+
+    if args.numpy:
+        os.environ["MONO_MAP_NO_C"] = "1"
+        slow = MapIntegrator(cfg)
+        t0 = time.perf_counter()
+        for pts, o in scans:
+            slow.insert(pts, o)
+        slow.sync()
+        results["batched (numpy DDA)"] = time.perf_counter() - t0
+        del os.environ["MONO_MAP_NO_C"]
+
+    g2t = None
+    if shutil.which("graph2tree"):
+        with tempfile.TemporaryDirectory() as tmp:
+            graph = Path(tmp) / "scans.graph"
+            write_scan_graph(graph, scans)
+            t0 = time.perf_counter()
+            out = subprocess.run(["graph2tree", "-i", str(graph), "-o", str(Path(tmp) / "g.bt"), "-res", str(args.res),
+                                  "-g", "-discretize"], capture_output=True, text=True, check=True).stdout
+            wall = time.perf_counter() - t0
+            m = re.search(r"time to insert scans: ([0-9.eE+-]+) sec", out)
+            results["graph2tree (insertion)"] = float(m.group(1)) if m else float("nan")
+            results["graph2tree (whole run)"] = wall
+            import octomap
+
+            g2t = octomap.OcTree.read(str(Path(tmp) / "g.bt.ot").encode())
+    else:
+        print("graph2tree not installed (apt-get install octomap-tools): skipped")
+
+    base = results["batched"]
+    print(f"{'method':28s} {'seconds':>9s} {'s/scan':>8s} {'time / batched':>15s}")
+    for name, sec in results.items():
+        print(f"{name:28s} {sec:9.2f} {sec / len(scans):8.3f} {sec / base:14.2f}x")
+    print(f"\nspeed-up of the batched path: {results['insertPointCloud'] / base:.1f}x vs insertPointCloud"
+          + (f", {results['graph2tree (insertion)'] / base:.1f}x vs graph2tree's insertion time" if g2t else ""))
+    print(f"(batched: ray casting + mirror {base - fast.sync_seconds:.2f} s, octree updates {fast.sync_seconds:.2f} s)")
+
+    for name, other in (("insertPointCloud", ref.tree), ("graph2tree", g2t)):
+        if other is None:
+            continue
+        a = agreement(fast_tree, other)
+        print(f"batched vs {name}: {a['cells']:,} cells, state agreement {100 * a['state_agreement']:.4f} %, "
+              f"identical log-odds: {a['identical_log_odds']}, memory {a['memory_a'] / 2**20:.2f} vs "
+              f"{a['memory_b'] / 2**20:.2f} MB (diff {100 * a['memory_diff']:.3f} %), leaves {a['leaves_a']:,} vs "
+              f"{a['leaves_b']:,}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
