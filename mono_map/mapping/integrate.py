@@ -94,16 +94,21 @@ class LogOddsMirror:
         local = ((keys[:, 0] & 7) << 6) | ((keys[:, 1] & 7) << 3) | (keys[:, 2] & 7)
         return flat, local
 
-    def index(self, keys: np.ndarray, create: bool) -> np.ndarray:
-        """Pool indices of keys ((N, 3) int64); with create=False, -1 where the block is absent."""
+    def index(self, keys: np.ndarray, create: bool, bounds: tuple | None = None) -> np.ndarray:
+        """Pool indices of keys ((N, 3) int64); with create=False, -1 where the block is absent.
+        bounds: optional (lo, hi) key bounds of ``keys`` (saves a pass)."""
         if len(keys) == 0:
             return np.zeros(0, dtype=np.int64)
-        blocks = keys >> self.SHIFT
         if create:
-            self._grow_table(blocks.min(axis=0), blocks.max(axis=0))
-        elif self.table is None:
-            return np.full(len(keys), -1, dtype=np.int64)
+            if bounds is not None and bounds[0] is not None:
+                blo, bhi = np.maximum(bounds[0], 0) >> self.SHIFT, np.minimum(bounds[1], 65535) >> self.SHIFT
+            else:
+                blo, bhi = keys.min(axis=0) >> self.SHIFT, keys.max(axis=0) >> self.SHIFT
+            self._grow_table(blo, bhi)
         else:
+            blocks = keys >> self.SHIFT
+            if self.table is None:
+                return np.full(len(keys), -1, dtype=np.int64)
             hi = self.table_lo + np.array(self.table.shape)
             inside = np.all((blocks >= self.table_lo) & (blocks < hi), axis=1)
             if not inside.all():
@@ -264,22 +269,22 @@ class MapIntegrator:
         t0 = time.perf_counter()
         ks = compute_update(pts, origin, self.cfg.resolution, max_range=self.cfg.max_range)
         t1 = time.perf_counter()
-        free_sent, freed = self._apply(ks.free, occupied=False)
-        occ_sent, became = self._apply(ks.occupied, occupied=True)
+        free_sent, freed = self._apply(ks.free, occupied=False, bounds=(ks.lo, ks.hi))
+        occ_sent, became = self._apply(ks.occupied, occupied=True, bounds=(ks.lo, ks.hi))
         t2 = time.perf_counter()
         timings = {"raycast_s": t1 - t0, "mirror_s": t2 - t1}
         if self.sync_every and self.frames % self.sync_every == 0:
             timings["sync_s"] = self.sync()
         return FrameIntegration(ks, free_sent, occ_sent, became, freed, timings)
 
-    def _apply(self, keys: np.ndarray, occupied: bool) -> tuple[int, np.ndarray]:
+    def _apply(self, keys: np.ndarray, occupied: bool, bounds: tuple | None = None) -> tuple[int, np.ndarray]:
         """One kind of update into the mirror; returns (#cells changed, centres whose occupied state flipped).
 
         Cells already clamped in the update's direction are left alone, as OctoMap's ``updateNode`` does.
         """
         if len(keys) == 0:
             return 0, np.zeros((0, 3))
-        idx = self.mirror.index(keys, create=True)
+        idx = self.mirror.index(keys, create=True, bounds=bounds)
         old = self.mirror.pool[idx]
         known = ~np.isnan(old)
         if occupied:

@@ -39,6 +39,8 @@ class KeySets:
     occupied: np.ndarray
     n_rays: int = 0           # rays cast (after discretisation)
     n_endpoints: int = 0      # end points marked occupied (rays within max_range)
+    lo: np.ndarray | None = None  # bounds of all keys (inclusive), when known
+    hi: np.ndarray | None = None
 
 
 def resolution_factor(resolution: float) -> float:
@@ -145,8 +147,9 @@ def _divmod(a: np.ndarray, b: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _ray_cells(origin32: np.ndarray, ends32: np.ndarray, resolution: float, box: _Box,
-               key_origin: np.ndarray, mark: np.ndarray | None = None) -> np.ndarray | None:
-    """Linear box indices of ``computeRayKeys(origin, end)`` for every end (free cells, with repeats).
+               key_origin: np.ndarray, mark: np.ndarray | None = None) -> np.ndarray:
+    """Linear box indices of ``computeRayKeys(origin, end)`` for every end (free cells, with repeats;
+    with ``mark``, which needs the compiled kernel: the distinct cells, marked 1 in ``mark``).
 
     All rays advance one DDA step per loop iteration. A ray can only stop near its end: it meets
     ``key_end`` exactly at step N = |Δkey|₁ (steps are monotone per axis), and ``min(tMax) > length``
@@ -159,11 +162,11 @@ def _ray_cells(origin32: np.ndarray, ends32: np.ndarray, resolution: float, box:
     from mono_map.mapping.raycast_c import load_kernel, ray_cells_c
 
     kernel = load_kernel()
+    if mark is not None and kernel is None:
+        raise ValueError("mark needs the compiled kernel")
     if kernel is not None:
-        if mark is not None:
-            ray_cells_c(kernel, origin32, key_origin, ends32, key_end, res, box.lo, box.strides, TREE_MAX_VAL, mark)
-            return None
-        return ray_cells_c(kernel, origin32, key_origin, ends32, key_end, res, box.lo, box.strides, TREE_MAX_VAL)
+        return ray_cells_c(kernel, origin32, key_origin, ends32, key_end, res, box.lo, box.strides, TREE_MAX_VAL,
+                           mark)
     lin_origin = int(box.linear(key_origin[None, :])[0])
     moving = np.any(key_end != key_origin[None, :], axis=1)   # same cell: empty ray
     ends32, key_end = ends32[moving], key_end[moving]
@@ -296,17 +299,23 @@ def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
 
     occ_lin = box.linear(occ_keys) if len(occ_keys) else np.zeros(0, np.int64)
     if box.size <= _BITMAP_MAX_CELLS:
+        from mono_map.mapping.raycast_c import load_kernel
+
         mark = np.zeros(box.size, dtype=np.uint8)
-        free_lin = _ray_cells(origin32, ray_ends, res, box, key_origin, mark=mark)
-        if free_lin is not None:
+        if load_kernel() is not None:              # distinct cells straight from the kernel
+            free_lin = _ray_cells(origin32, ray_ends, res, box, key_origin, mark=mark)
+        else:                                      # numpy: repeats; dedup through the bitmap
+            free_lin = _ray_cells(origin32, ray_ends, res, box, key_origin)
             _check_in_box(free_lin, box)
             mark[free_lin] = 1
+            free_lin = np.flatnonzero(mark)
         mark[occ_lin] = 2                          # occupied wins
-        free_u = np.flatnonzero(mark == 1)
-        occ_u = np.flatnonzero(mark == 2)
+        free_u = free_lin[mark[free_lin] == 1]
+        occ_u = np.unique(occ_lin)
     else:
         free_lin = _ray_cells(origin32, ray_ends, res, box, key_origin)
         _check_in_box(free_lin, box)
         occ_u = np.unique(occ_lin)
         free_u = np.setdiff1d(np.unique(free_lin), occ_u, assume_unique=True)
-    return KeySets(free=box.keys(free_u), occupied=box.keys(occ_u), n_rays=n_rays, n_endpoints=len(occ_u))
+    return KeySets(free=box.keys(free_u), occupied=box.keys(occ_u), n_rays=n_rays, n_endpoints=len(occ_u),
+                   lo=box.lo, hi=box.lo + box.dims - 1)

@@ -28,13 +28,15 @@ C_SOURCE = r"""
 
 /* computeRayKeys(origin, end) for n ends. With mark == NULL: writes the linear indices to out
    (the origin cell first for every ray that leaves it) and returns their number, or -1 if cap is
-   too small. With mark (of cap bytes): sets mark[index] = 1 instead and returns the number of cells
-   visited, or -2 if an index falls outside the mark array. */
-#define EMIT(x) do { if (mark) { if ((x) < 0 || (x) >= cap) return -2; mark[(x)] = 1; ++off; } else { if (off >= cap) return -1; out[off++] = (x); } } while (0)
+   too small. With mark (a zeroed bitmap of mark_size bytes over the box): writes each index only the
+   first time (setting mark[index] = 1), so out holds the distinct cells; -2 if an index falls outside. */
+#define EMIT(x) do { if (mark) { if ((x) < 0 || (x) >= mark_size) return -2; \
+        if (!mark[(x)]) { if (off >= cap) return -1; mark[(x)] = 1; out[off++] = (x); } } \
+        else { if (off >= cap) return -1; out[off++] = (x); } } while (0)
 int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float *ends,
                      const int64_t *key_ends, int64_t n, double res, const int64_t *lo,
                      const int64_t *strides, int64_t tree_max_val, int64_t *out, int64_t cap,
-                     uint8_t *mark)
+                     uint8_t *mark, int64_t mark_size)
 {
     int64_t off = 0;
     const int64_t lin_o = (key_origin[0] - lo[0]) * strides[0] + (key_origin[1] - lo[1]) * strides[1]
@@ -120,7 +122,8 @@ def load_kernel():
         lib = ctypes.CDLL(str(lib_path))
         fn = lib.mm_ray_cells
         p = ctypes.c_void_p
-        fn.argtypes = [p, p, p, p, ctypes.c_int64, ctypes.c_double, p, p, ctypes.c_int64, p, ctypes.c_int64, p]
+        fn.argtypes = [p, p, p, p, ctypes.c_int64, ctypes.c_double, p, p, ctypes.c_int64, p, ctypes.c_int64, p,
+                       ctypes.c_int64]
         fn.restype = ctypes.c_int64
         _LIB = fn
     except (OSError, subprocess.SubprocessError) as exc:
@@ -132,26 +135,30 @@ def load_kernel():
 def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.ndarray, key_ends: np.ndarray,
                 resolution: float, lo: np.ndarray, strides: np.ndarray, tree_max_val: int,
                 mark: np.ndarray | None = None) -> np.ndarray | int:
-    """Run the kernel; returns linear box indices (int64, with repeats), or with ``mark`` (uint8
-    bitmap over the box) sets ``mark[index] = 1`` and returns the number of cells visited."""
+    """Run the kernel; returns linear box indices (int64, with repeats), or with ``mark`` (zeroed
+    uint8 bitmap over the box) the distinct indices, marking them 1 in ``mark``."""
     o = np.ascontiguousarray(origin32, dtype=np.float32)
     ko = np.ascontiguousarray(key_origin, dtype=np.int64)
     e = np.ascontiguousarray(ends32, dtype=np.float32)
     ke = np.ascontiguousarray(key_ends, dtype=np.int64)
     lo = np.ascontiguousarray(lo, dtype=np.int64)
     st = np.ascontiguousarray(strides, dtype=np.int64)
+    cap = int(np.abs(ke - ko[None, :]).sum()) + 8 * len(e) + 16
     if mark is not None:
         assert mark.dtype == np.uint8 and mark.flags.c_contiguous
+        cap = min(cap, len(mark))
+        out = np.empty(cap, dtype=np.int64)
         n = int(fn(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, len(e), float(resolution),
-                   lo.ctypes.data, st.ctypes.data, int(tree_max_val), None, len(mark), mark.ctypes.data))
-        if n < 0:
-            raise AssertionError("ray left its bounding box")  # cannot happen: the margin covers DDA overshoot
-        return n
+                   lo.ctypes.data, st.ctypes.data, int(tree_max_val), out.ctypes.data, cap, mark.ctypes.data,
+                   len(mark)))
+        if n < 0:   # -1 cannot happen (distinct cells <= min(steps, box)); -2: outside the box
+            raise AssertionError("ray left its bounding box")  # the margin covers DDA overshoot
+        return out[:n]
     cap = int(np.abs(ke - ko[None, :]).sum()) + 8 * len(e) + 16
     while True:
         out = np.empty(cap, dtype=np.int64)
         n = fn(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, len(e), float(resolution),
-               lo.ctypes.data, st.ctypes.data, int(tree_max_val), out.ctypes.data, cap, None)
+               lo.ctypes.data, st.ctypes.data, int(tree_max_val), out.ctypes.data, cap, None, 0)
         if n >= 0:
             return out[:n]
         cap *= 2
