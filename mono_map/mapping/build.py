@@ -98,7 +98,7 @@ def _predict(predictor, seq, i: int, image: np.ndarray):
 def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[int] | None = None,
               octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None,
               model: str | None = None, depth_range: tuple[float, float] | None = None,
-              observers: Sequence[Callable] = (), stats_every: int = 10, method: str = "batched",
+              observers: Sequence[Callable] = (), stats_every: int = 100, method: str = "batched",
               show_progress: bool = True) -> BuildResult:
     """Integrate ``frames`` of ``seq`` into a new OctoMap.
 

@@ -103,8 +103,8 @@ def discretize(points: np.ndarray, resolution: float) -> tuple[np.ndarray, np.nd
     if not ok.all():
         raise MonoMapError(f"points: {int((~ok).sum())} end points lie outside OctoMap's addressable "
                            f"range (±{TREE_MAX_VAL * resolution:.0f} m at {resolution} m)")
-    _, first = np.unique(pack_keys(keys), return_index=True)
-    keys = keys[np.sort(first)]
+    packed = np.sort(pack_keys(keys))          # sort-based unique (order is irrelevant to the sets)
+    keys = unpack_keys(packed[np.r_[True, packed[1:] != packed[:-1]]])
     centres = key_to_coord(keys, resolution).astype(np.float32)
     return keys, centres
 

@@ -48,7 +48,11 @@ def select_pixels(depth: np.ndarray, entropy: np.ndarray, keep: float, min_depth
     if n_keep == len(idx):
         mask[idx] = True
     elif n_keep > 0:
-        order = np.argsort(entropy.reshape(-1)[idx], kind="stable")
-        mask[idx[order[:n_keep]]] = True
+        e = entropy.reshape(-1)[idx]
+        t = np.partition(e, n_keep - 1)[n_keep - 1]        # the n_keep-th lowest entropy
+        below = e < t
+        ties = np.flatnonzero(e == t)[: n_keep - int(below.sum())]   # ties: raster order
+        mask[idx[below]] = True
+        mask[idx[ties]] = True
     mask = mask.reshape(depth.shape)
     return (mask, valid) if return_valid else mask
