@@ -59,6 +59,7 @@ def save_checkpoint(path: str | os.PathLike, model: DepthNet, training: dict | N
         payload["optimizer"] = optimizer_state
     with atomic_path(path) as tmp:
         torch.save(payload, tmp)
+        os.chmod(tmp, 0o644)  # a shipped file, readable like any other
 
 
 def load_checkpoint(path: str | os.PathLike, device: str = "cpu") -> tuple[DepthNet, dict]:
