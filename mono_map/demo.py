@@ -24,7 +24,56 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def parse_frames(value: str) -> int | None:
+def run(args: argparse.Namespace) -> int:
+    """synth (if missing) → LiDAR-FOV map → mono keep 0.8 map streamed to a rerun recording →
+    mono keep 1.0 map → the mapping table, sweep plot and top-down pictures."""
+    import time
+    from pathlib import Path
+
+    from mono_map.config import OctoMapConfig
+    from mono_map.data.kitti import open_sequence
+    from mono_map.mapping.build import parse_frames
+    from mono_map.mapping.commands import _frames_tag, build_and_write, map_stem
+    from mono_map.mapping.table import run_table
+    from mono_map.viz.rerun_stream import RerunMapLogger
+
+    t0 = time.perf_counter()
+    n = parse_frames_arg(args.frames)
+    seq = open_sequence(args.data_root, args.seq, frames=n)
+    frames, desc = parse_frames("all" if n is None else f"0:{min(n, len(seq))}", len(seq))
+    out_dir = Path(args.out) if args.out else Path("outputs") / f"seq{args.seq}"
+    print(f"mono-map demo: sequence {seq.name} ({'synthetic' if seq.is_synthetic else 'real KITTI'}, "
+          f"{len(seq)} frames under {seq.root}); {desc}"
+          + ("" if n is None else " — pass --frames all for the whole sequence"), flush=True)
+    cfg = OctoMapConfig()
+    tag = _frames_tag(frames)
+
+    # 1. the LiDAR-FOV reference, built first so the recording can show it beside the growing map
+    ref_bt = out_dir / f"{map_stem('lidar-fov', 1.0, cfg, tag, 1, None)}.bt"
+    if not ref_bt.exists():
+        print("[1/3] LiDAR-FOV reference map", flush=True)
+        build_and_write(seq, "lidar-fov", 1.0, cfg, frames, 1, None, out_dir)
+    # 2. the uncertainty-aware monocular map, streamed to a rerun recording while it grows
+    rrd = out_dir / f"demo_mono-keep0.8_{tag}.rrd"
+    keep_bt = out_dir / f"{map_stem('mono', 0.8, cfg, tag, 1, None)}.bt"
+    if not keep_bt.exists() or not rrd.exists():
+        print(f"[2/3] monocular map, keep 0.8, recorded to {rrd}", flush=True)
+        logger = RerunMapLogger(rrd=rrd, reference_map=ref_bt, resolution=cfg.resolution,
+                                image_size=seq.image_size)
+        build_and_write(seq, "mono", 0.8, cfg, frames, 1, None, out_dir, observers=[logger])
+    # 3. the vanilla monocular map and the table (cached maps are reused)
+    print("[3/3] monocular map, keep 1.0, and the mapping table", flush=True)
+    table_args = argparse.Namespace(
+        seq=args.seq, data_root=args.data_root, frames=f"{frames.start}:{frames.stop}", out=str(out_dir),
+        keeps="0.8,1.0", stride=1, model=None, res=cfg.resolution, max_range=cfg.max_range,
+        prob_hit=cfg.prob_hit, prob_miss=cfg.prob_miss, clamp_min=cfg.clamp_min, clamp_max=cfg.clamp_max)
+    run_table(table_args)
+    print(f"recording: {rrd}  (open it with: mono-map view {rrd})")
+    print(f"demo finished in {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+def parse_frames_arg(value: str) -> int | None:
     """'all' → None, else a positive integer frame count."""
     from mono_map.errors import MonoMapError
 
@@ -37,17 +86,3 @@ def parse_frames(value: str) -> int | None:
     if n <= 0:
         raise MonoMapError(f"--frames: expected a positive integer or 'all', got '{value}'")
     return n
-
-
-def run(args: argparse.Namespace) -> int:
-    from mono_map.data.kitti import open_sequence
-
-    n = parse_frames(args.frames)
-    seq = open_sequence(args.data_root, args.seq, frames=n)
-    used = len(seq) if n is None else min(n, len(seq))
-    print(f"sequence {seq.name}: {len(seq)} frames under {seq.root} "
-          f"({'synthetic' if seq.is_synthetic else 'real KITTI'}); using the first {used}"
-          + ("" if n is None else " (pass --frames all for the whole sequence)"), file=sys.stderr)
-    print(f"image_2 {seq.image_size[1]}x{seq.image_size[0]}, fx={seq.calib.K2[0, 0]:.1f}, "
-          f"cam2 offset from cam0 {seq.calib.T_cam2_cam0[:3, 3].round(4).tolist()} m")
-    return 0
