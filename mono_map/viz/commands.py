@@ -12,7 +12,6 @@ import sys
 from pathlib import Path
 
 from mono_map.errors import MonoMapError
-from mono_map.viz.rerun_stream import rerun_binary
 
 
 def register(subparsers) -> None:
@@ -43,6 +42,12 @@ def _check_rrd(path: Path) -> None:
         raise MonoMapError(f"{path}: rerun file holds no recording")
 
 
+def rerun_binary() -> str:
+    from mono_map.viz.rerun_stream import rerun_binary as find
+
+    return find()
+
+
 def _free_port() -> int:
     import socket
 
@@ -51,7 +56,37 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
+class _PaintTimeout(Exception):
+    pass
+
+
 def screenshot(rrd: Path, png: Path, frame: int | None = None, timeout: float = 300.0) -> None:
+    """Render ``rrd`` into ``png``: headless viewer first; if its paint deadline is missed (CPU
+    rasterizer on a busy machine), the windowed viewer's ``--screenshot-to`` under ``xvfb-run``
+    (last frame only; the picture may show a hover tooltip)."""
+    try:
+        _screenshot_headless(rrd, png, frame, timeout)
+    except _PaintTimeout:
+        if shutil.which("xvfb-run") is None:
+            raise MonoMapError(f"--screenshot: {png}: the headless viewer did not finish painting in time "
+                               f"(software rendering on a busy machine?) and xvfb-run is not installed") from None
+        _screenshot_xvfb(rrd, png, timeout)
+
+
+def _screenshot_xvfb(rrd: Path, png: Path, timeout: float) -> None:
+    from mono_map.io import atomic_path
+
+    env = dict(os.environ, XDG_RUNTIME_DIR=os.environ.get("XDG_RUNTIME_DIR", "/tmp"))
+    with atomic_path(png) as tmp:
+        cmd = ["xvfb-run", "-a", "-s", "-screen 0 1600x900x24", rerun_binary(), "--port", str(_free_port()),
+               "--window-size", "1600x900", "--screenshot-to", str(tmp), str(rrd)]
+        proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=timeout,
+                              text=True)
+        if proc.returncode != 0 or not tmp.exists() or tmp.stat().st_size == 0:
+            raise MonoMapError(f"--screenshot: {png}: the viewer could not render a picture")
+
+
+def _screenshot_headless(rrd: Path, png: Path, frame: int | None = None, timeout: float = 300.0) -> None:
     """Render ``rrd`` with the real viewer, headless (no display needed), into ``png`` (1920×1080).
 
     The viewer opens the recording with its default blueprint, jumps to ``frame`` on the ``frame``
@@ -94,8 +129,7 @@ def screenshot(rrd: Path, png: Path, frame: int | None = None, timeout: float = 
                     break
                 except TimeoutError:
                     if attempt == 3:
-                        raise MonoMapError(f"--screenshot: {png}: the viewer did not finish painting in time "
-                                           f"(software rendering on a busy machine?)") from None
+                        raise _PaintTimeout() from None
             if not tmp.exists() or tmp.stat().st_size == 0:
                 raise MonoMapError(f"--screenshot: {png}: the viewer did not write a picture")
     finally:
