@@ -220,6 +220,21 @@ def test_real_kitti_sequence_is_never_touched(tmp_path):
     assert ensure_sequence(tmp_path, "no_such_recipe_xyz") is False
 
 
+def test_sequence_busy_in_another_process_is_not_touched(tmp_path):
+    import os
+    import socket
+
+    seq = tmp_path / "sequences" / "tiny"
+    seq.mkdir(parents=True)
+    busy = {"recipe": "tiny", "pid": os.getppid(), "host": socket.gethostname()}   # a live process, not us
+    (seq / ".synth_partial.json").write_text(json.dumps(busy))
+    with pytest.raises(MonoMapError, match=f"process {os.getppid()} is generating"):
+        ensure_sequence(tmp_path, "tiny")
+    with pytest.raises(MonoMapError, match="is generating this sequence"):
+        generate_sequence(load_recipe("tiny"), tmp_path, quiet=True)
+    assert sorted(p.name for p in seq.iterdir()) == [".synth_partial.json"]
+
+
 def test_recipe_errors(tmp_path):
     good = Path(load_recipe("tiny").path).read_text()
     bad = tmp_path / "bad.toml"

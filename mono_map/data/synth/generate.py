@@ -86,6 +86,28 @@ def marker_info(recipe: Recipe, n_frames: int) -> dict:
             "depth_2": "z-depth (m, cam2) of the first surface hit by each pixel's ray; glass = the glass pane"}
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _check_not_busy(seq_dir: Path, partial: dict | None) -> None:
+    """Refuse to work on a sequence another live process is generating (its partial marker names it)."""
+    import socket
+
+    if not partial:
+        return
+    pid = partial.get("pid")
+    if isinstance(pid, int) and pid != os.getpid() and partial.get("host") == socket.gethostname() and _pid_alive(pid):
+        raise MonoMapError(f"{seq_dir}: process {pid} is generating this sequence right now; "
+                           "wait for it to finish (or stop it) and try again")
+
+
 def _is_current(info: dict | None, recipe: Recipe) -> bool:
     return bool(info) and info.get("recipe_hash") == recipe.content_hash() \
         and info.get("generator_version") == GENERATOR_VERSION
@@ -117,6 +139,7 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
     if seq_dir.is_dir() and marker is None and partial is None and any(seq_dir.iterdir()):
         raise MonoMapError(f"{seq_dir}: exists but was not written by mono-map synth (no {writer.MARKER}, "
                            "e.g. a real KITTI sequence); refusing to overwrite it")
+    _check_not_busy(seq_dir, partial)
     current = _is_current(marker, recipe)
     if not force and current and marker.get("n_frames", 0) >= n and partial is None:
         return seq_dir
@@ -124,7 +147,10 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
     if fresh:
         (seq_dir / writer.MARKER).unlink(missing_ok=True)
     seq_dir.mkdir(parents=True, exist_ok=True)
-    writer.write_marker(seq_dir, marker_info(recipe, n), partial=True)
+    import socket
+
+    writer.write_marker(seq_dir, {**marker_info(recipe, n), "pid": os.getpid(), "host": socket.gethostname()},
+                        partial=True)
     todo = list(range(n)) if fresh else [i for i in range(n) if not writer.frame_complete(seq_dir, i)]
     t0 = time.perf_counter()
     if todo:
@@ -184,6 +210,13 @@ def ensure_sequence(root, name: str, frames: int | None = None) -> bool:
     partial = (seq_dir / writer.PARTIAL_MARKER).is_file()
     if seq_dir.is_dir() and marker is None and not partial and any(seq_dir.iterdir()):
         return False
+    if partial:
+        import json
+
+        try:
+            _check_not_busy(seq_dir, json.loads((seq_dir / writer.PARTIAL_MARKER).read_text()))
+        except json.JSONDecodeError:
+            pass
     recipe = load_recipe(path)
     want = recipe.frames if frames is None else min(int(frames), recipe.frames)
     if marker is not None and not partial and int(marker.get("n_frames", 0)) >= want:
