@@ -200,3 +200,18 @@ def test_cli_prints_one_line_error(tmp_path, capsys):
     assert code == 2
     assert len(err) == 1 and err[0].startswith("mono-map: error: ") and "nosuchseq" in err[0]
     assert "Traceback" not in err[0]
+
+
+def test_synthetic_prefix_being_extended_reads_only_marked_frames(tmp_path):
+    """While a synthetic prefix grows in place, image_2/ holds frames beyond the marker: ignore them."""
+    import json
+
+    seq_dir = make_sequence(tmp_path, n=5)
+    (seq_dir / "synth.json").write_text(json.dumps({"n_frames": 4}))
+    poses = tmp_path / "poses" / "42.txt"
+    poses.write_text("\n".join(poses.read_text().splitlines()[:4]) + "\n")
+    (seq_dir / "times.txt").write_text("".join(f"{0.1 * i:e}\n" for i in range(4)))
+    seq = KittiSequence(tmp_path, "42")
+    assert len(seq) == 4 and seq.is_synthetic
+    (seq_dir / "synth.json").write_text("{}")
+    expect_error(r"synth.json: malformed synthetic-sequence marker", KittiSequence, tmp_path, "42")

@@ -250,6 +250,12 @@ class KittiSequence:
             self._kitti = pykitti.odometry(str(self.root), name)
         self.image_files = [Path(f) for f in self._kitti.cam2_files]
         self.velodyne_files = [Path(f) for f in self._kitti.velo_files]
+        # A synthetic prefix being extended in place briefly holds more frames than its
+        # marker, poses and times: read only the frames the marker vouches for.
+        n_marked = self._synthetic_frame_count()
+        if n_marked is not None:
+            self.image_files = self.image_files[:n_marked]
+            self.velodyne_files = self.velodyne_files[:n_marked]
         n = len(self.image_files)
         if n == 0:
             raise MonoMapError(f"{self.path / 'image_2'}: no PNG images")
@@ -263,6 +269,19 @@ class KittiSequence:
         self.times = times
         self.poses_cam0 = poses
         self.pose_path = pose_path
+
+    def _synthetic_frame_count(self) -> int | None:
+        """Frame count recorded in ``synth.json`` (synthetic sequences), else None."""
+        import json
+
+        marker = self.path / "synth.json"
+        if not marker.is_file():
+            return None
+        try:
+            n = int(json.loads(marker.read_text())["n_frames"])
+        except (ValueError, KeyError, TypeError):
+            raise MonoMapError(f"{marker}: malformed synthetic-sequence marker (no integer n_frames)") from None
+        return n
 
     def __len__(self) -> int:
         return len(self.image_files)
