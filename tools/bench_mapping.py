@@ -39,15 +39,17 @@ from mono_map.mapping.select import select_pixels  # noqa: E402
 
 
 def load_scans(args) -> list[tuple[np.ndarray, np.ndarray]]:
-    seq = open_sequence(args.data_root, args.seq)
+    from mono_map.mapping.commands import _frames_needed
+
+    seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))  # generate only the prefix needed
     frames, desc = parse_frames(args.frames, len(seq))
     print(f"sequence {args.seq}, {desc}, source {args.source}")
     scans = []
     predictor = None
     if args.source == "mono":
-        from mono_map.mapping.commands import _make_predictor
+        from mono_map.mapping.build import load_predictor
 
-        predictor = _make_predictor(args.model)
+        predictor = load_predictor(args.model)
     for i in frames:
         if args.source == "mono":
             image = seq.image(i)

@@ -98,23 +98,13 @@ def _frames_tag(frames: range) -> str:
     return f"f{frames.start}-{frames.stop}"
 
 
-def _make_predictor(model: str | None):
-    if model == "oracle":
-        from mono_map.mapping.oracle import NoisyGroundTruthPredictor
-
-        return NoisyGroundTruthPredictor()
-    from mono_map.depth.inference import DepthPredictor
-
-    return DepthPredictor.load(model)
-
-
 def build_and_write(seq, source: str, keep: float, cfg, frames: range, stride: int, model: str | None,
                     out_dir: Path, name: str | None = None, observers=(), show_progress: bool = True) -> tuple[Path, dict]:
     """Build one map and write ``<name>.bt`` + ``<name>.json`` atomically; returns (bt path, stats)."""
     from mono_map.io import write_json_atomic
-    from mono_map.mapping.build import build_map, write_tree_bt
+    from mono_map.mapping.build import build_map, load_predictor, write_tree_bt
 
-    predictor = _make_predictor(model) if source == "mono" else None
+    predictor = load_predictor(model) if source == "mono" else None
     name = name or map_stem(source, keep, cfg, _frames_tag(frames), stride, model)
     result = build_map(seq, source=source, keep=keep, frames=frames, octomap=cfg, stride=stride,
                        predictor=predictor, observers=observers, show_progress=show_progress)
