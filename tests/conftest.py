@@ -1,4 +1,4 @@
-"""Shared fixtures: the tiny synthetic sequence, generated once per test session."""
+"""Shared fixtures: the tiny synthetic sequence (generated once per session), one torch thread."""
 
 from __future__ import annotations
 
@@ -13,3 +13,14 @@ def tiny_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("kitti_tiny")
     generate_sequence(load_recipe("tiny"), root, workers=2, quiet=True)
     return root
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """One intra-op thread: on the shared 2-core machine two threads spin-wait and run ~10x slower."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -15,15 +15,6 @@ from mono_map.depth.networks import DepthNet, named_config
 from mono_map.errors import MonoMapError
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One intra-op thread: on the shared 2-core machine two threads spin-wait and run ~10x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 OBJECT = Path(__file__).resolve().parents[2] / "shared" / "kitti_real" / "object" / "training"  # /work/shared/...
 TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),
             num_bins=16, input_height=64, input_width=192)

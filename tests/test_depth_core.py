@@ -12,15 +12,6 @@ from mono_map.depth.losses import soft_target
 from mono_map.errors import MonoMapError
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One intra-op thread: on the shared 2-core machine two threads spin-wait and run ~10x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 BINS = DepthBins(64, 1.0, 80.0)
 
 

@@ -4,20 +4,10 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from mono_map.eval.depth_metrics import depth_errors, garg_crop_mask, image_errors, mean_errors
 from mono_map.eval.hypotheses import oracle_errors, oracle_select
 from mono_map.eval.sparsification import auc, sparsification
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One intra-op thread: on the shared 2-core machine two threads spin-wait and run ~10x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def test_metrics_hand_computed():

@@ -7,15 +7,6 @@ from mono_map.depth.networks import DepthNet, ResNetEncoder, named_config
 from mono_map.errors import MonoMapError
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One intra-op thread: on the shared 2-core machine two threads spin-wait and run ~10x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _params(m):
     return sum(p.numel() for p in m.parameters())
 

@@ -38,6 +38,15 @@ from mono_map.mapping.scangraph import write_scan_graph  # noqa: E402
 from mono_map.mapping.select import select_pixels  # noqa: E402
 
 
+def integrate_timed(integrator: MapIntegrator, scans) -> tuple[MapIntegrator, float]:
+    """Insert every scan and bring the octree up to date; returns (integrator, seconds)."""
+    t0 = time.perf_counter()
+    for pts, origin in scans:
+        integrator.insert(pts, origin)
+    integrator.sync()
+    return integrator, time.perf_counter() - t0
+
+
 def load_scans(args) -> list[tuple[np.ndarray, np.ndarray]]:
     from mono_map.mapping.commands import _frames_needed
 
@@ -102,28 +111,13 @@ def main(argv=None) -> int:
     print(f"{len(scans)} scans, {n_pts:,} points ({n_pts / len(scans):,.0f} per scan), {args.res} m cells\n")
 
     results = {}
-    ref = MapIntegrator(cfg, method="insertPointCloud")
-    t0 = time.perf_counter()
-    for pts, o in scans:
-        ref.insert(pts, o)
-    results["insertPointCloud"] = time.perf_counter() - t0
-
-    fast = MapIntegrator(cfg)
-    t0 = time.perf_counter()
-    for pts, o in scans:
-        fast.insert(pts, o)
-    fast.sync()
-    results["batched"] = time.perf_counter() - t0
+    ref, results["insertPointCloud"] = integrate_timed(MapIntegrator(cfg, method="insertPointCloud"), scans)
+    fast, results["batched"] = integrate_timed(MapIntegrator(cfg), scans)
     fast_tree = fast.tree
 
     if args.numpy:
         os.environ["MONO_MAP_NO_C"] = "1"
-        slow = MapIntegrator(cfg)
-        t0 = time.perf_counter()
-        for pts, o in scans:
-            slow.insert(pts, o)
-        slow.sync()
-        results["batched (numpy DDA)"] = time.perf_counter() - t0
+        _, results["batched (numpy DDA)"] = integrate_timed(MapIntegrator(cfg), scans)
         del os.environ["MONO_MAP_NO_C"]
 
     g2t = None

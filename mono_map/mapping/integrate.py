@@ -26,7 +26,11 @@ def make_octree(cfg: OctoMapConfig):
     import octomap
 
     validate_octomap_config(cfg)
-    tree = octomap.OcTree(float(cfg.resolution))
+    return apply_sensor_model(octomap.OcTree(float(cfg.resolution)), cfg)
+
+
+def apply_sensor_model(tree, cfg: OctoMapConfig):
+    """Set the config's hit/miss probabilities, clamping and occupancy threshold on ``tree``; returns it."""
     tree.setProbHit(float(cfg.prob_hit))
     tree.setProbMiss(float(cfg.prob_miss))
     tree.setClampingThresMin(float(cfg.clamp_min))

@@ -66,17 +66,11 @@ def ot_stream(keys: np.ndarray, values: np.ndarray, resolution: float) -> tuple[
 
 def octree_from_cells(keys: np.ndarray, values: np.ndarray, cfg):
     """An ``octomap.OcTree`` holding exactly these finest cells, with ``cfg``'s sensor model."""
-    from mono_map.mapping.integrate import make_octree
+    from mono_map.mapping.integrate import apply_sensor_model, make_octree
 
     if len(keys) == 0:
         return make_octree(cfg)
     import octomap
 
     data, _ = ot_stream(keys, values, cfg.resolution)
-    tree = octomap.OcTree.read(data)
-    tree.setProbHit(float(cfg.prob_hit))
-    tree.setProbMiss(float(cfg.prob_miss))
-    tree.setClampingThresMin(float(cfg.clamp_min))
-    tree.setClampingThresMax(float(cfg.clamp_max))
-    tree.setOccupancyThres(float(cfg.occupancy_threshold))
-    return tree
+    return apply_sensor_model(octomap.OcTree.read(data), cfg)
