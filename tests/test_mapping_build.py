@@ -202,3 +202,37 @@ def test_eval_bad_map(tmp_path):
     bad.write_text("not a tree")
     assert cli_main(["eval", "--map", str(bad), "--reference", str(bad)]) == 2
     assert cli_main(["eval", "--map", str(tmp_path / "missing.bt"), "--reference", str(bad)]) == 2
+
+
+def test_cli_table_and_sweep(tiny_root, tmp_path, capsys):
+    """`eval --table`: builds the maps it lacks, scores them, writes Markdown, JSON and both pictures;
+    against the whole LiDAR map (the paper's ground truth) the LiDAR-FOV map becomes a scored row."""
+    out = tmp_path / "table"
+    common = ["eval", "--seq", "tiny", "--data-root", str(tiny_root), "--frames", "0:3", "--out", str(out),
+              "--table", "--keeps", "0.5", "--model", "oracle", "--stride", "4"]
+    assert cli_main(common) == 0
+    text = capsys.readouterr().out
+    assert "| mono keep 0.8 |" in text and "| mono (keep 1.0) |" in text and "| mono keep 0.5 |" in text
+    stem = "table_f0-3_res0.2_model-oracle"
+    rows = json.loads((out / f"{stem}.json").read_text())["rows"]
+    assert [r["method"] for r in rows] == ["LiDAR-FOV", "mono (keep 1.0)", "mono keep 0.8", "mono keep 0.5"]
+    assert rows[0]["accuracy"] == 1.0 and rows[0]["coverage"] == 1.0
+    kept = [r["points_kept"] for r in rows[1:]]
+    assert kept[0] > kept[1] > kept[2] > 0  # keep 1.0 > 0.8 > 0.5
+    for r in rows[1:]:
+        assert 0 < r["accuracy"] <= r["accuracy_covered"] <= 1 and r["memory_mb"] > 0
+    for suffix in (".md", "_sweep.png", "_topdown.png"):
+        assert (out / f"{stem}{suffix}").stat().st_size > 0
+    n_bt = len(list(out.glob("*.bt")))
+    assert n_bt == 4
+
+    assert cli_main(common + ["--reference", "lidar"]) == 0
+    capsys.readouterr()
+    table = json.loads((out / f"{stem}_ref-lidar.json").read_text())
+    assert table["reference"] == "lidar"
+    fov = table["rows"][0]
+    assert fov["method"] == "LiDAR-FOV" and fov["coverage"] < 1.0 and 0 < fov["accuracy"] < 1.0
+    assert len(list(out.glob("*.bt"))) == n_bt + 1  # only the whole-LiDAR map was added; the rest reused
+
+    assert cli_main(common + ["--reference", "radar"]) == 2
+    assert "--reference" in capsys.readouterr().err

@@ -52,7 +52,8 @@ def register(subparsers) -> None:
                     "covered cells, occupied precision/recall/F1, memory and leaf count. With --table: build "
                     "whatever is missing and print LiDAR-FOV, mono, mono keep 0.8 and a keep sweep.")
     e.add_argument("--map", default=None, help="map to score (.bt)")
-    e.add_argument("--reference", default="lidar-fov", help="lidar-fov | lidar | path to a .bt (default lidar-fov)")
+    e.add_argument("--reference", default="lidar-fov", help="lidar-fov | lidar | path to a .bt (default lidar-fov); "
+                   "with --table: lidar-fov, or lidar (the whole 360° LiDAR map, LiDAR-FOV then a scored row)")
     e.add_argument("--seq", default="00", help="sequence for a built reference / the table (default 00)")
     e.add_argument("--table", action="store_true", help="build missing maps and print Table IV + keep sweep")
     e.add_argument("--keeps", default="0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0", help="keep sweep for --table")

@@ -1,7 +1,8 @@
 """``mono-map eval --table``: the paper's Table IV for our data, plus a keep sweep.
 
 Builds (or reuses, cached under ``outputs/seq<SEQ>/`` by their parameters) the LiDAR-FOV map and
-monocular maps for every keep of the sweep, scores each against the LiDAR-FOV map, and writes
+monocular maps for every keep of the sweep, scores each against the LiDAR-FOV map (``--reference
+lidar``: against the whole 360° LiDAR map, as the paper, where LiDAR-FOV is a scored row), and writes
 Markdown + JSON + a PNG of accuracy and memory against keep, and the top-down pictures.
 """
 
@@ -32,6 +33,9 @@ def run_table(args) -> int:
 
     cfg = octomap_config(args)
     validate_octomap_config(cfg)
+    reference = getattr(args, "reference", "lidar-fov")
+    if reference not in ("lidar", "lidar-fov"):
+        raise MonoMapError(f"--reference: the table is scored against 'lidar-fov' or 'lidar', not {reference!r}")
     try:
         keeps = sorted({float(k) for k in args.keeps.split(",") if k.strip()})
     except ValueError:
@@ -47,11 +51,17 @@ def run_table(args) -> int:
           f"{args.model or 'shipped binary checkpoint'}")
 
     rows = []
-    ref_stem = map_stem("lidar-fov", 1.0, cfg, _frames_tag(frames), 1, None)
-    ref_bt, ref_stats = _cached(out_dir, ref_stem, lambda: build_and_write(
+    fov_stem = map_stem("lidar-fov", 1.0, cfg, _frames_tag(frames), 1, None)
+    fov_bt, fov_stats = _cached(out_dir, fov_stem, lambda: build_and_write(
         seq, "lidar-fov", 1.0, cfg, frames, 1, None, out_dir))
+    entries = [("LiDAR-FOV", "lidar-fov", None, fov_bt, fov_stats)]
+    if reference == "lidar":  # the paper's ground truth: the whole LiDAR map; LiDAR-FOV is then a row to score
+        lidar_stem = map_stem("lidar", 1.0, cfg, _frames_tag(frames), 1, None)
+        ref_bt, _ = _cached(out_dir, lidar_stem, lambda: build_and_write(
+            seq, "lidar", 1.0, cfg, frames, 1, None, out_dir))
+    else:
+        ref_bt = fov_bt
     ref = load_tree(ref_bt)
-    entries = [("LiDAR-FOV", "lidar-fov", None, ref_bt, ref_stats)]
     for keep in sorted(keeps, reverse=True):
         stem = map_stem("mono", keep, cfg, _frames_tag(frames), args.stride, args.model)
         bt, stats = _cached(out_dir, stem, lambda keep=keep: build_and_write(
@@ -60,7 +70,7 @@ def run_table(args) -> int:
         entries.append((label, "mono", keep, bt, stats))
     trees = {}
     for label, source, keep, bt, stats in entries:
-        tree = ref if source == "lidar-fov" else load_tree(bt)
+        tree = load_tree(bt)
         trees[label] = tree
         m = evaluate_map(tree, ref)
         rows.append({"method": label, "source": source, "keep": keep, "bt": str(bt),
@@ -70,12 +80,13 @@ def run_table(args) -> int:
                      "leaf_count": stats["leaf_count"], "bt_bytes": stats.get("bt_bytes"),
                      "frames_per_s": stats["frames_per_s"], "points_kept": stats["points_kept"]})
 
-    md = table_markdown(rows, args.seq, desc, cfg, args.model)
-    stem = f"table_{_frames_tag(frames)}_res{cfg.resolution:g}" + (f"_model-{Path(args.model).stem}" if args.model else "")
+    md = table_markdown(rows, args.seq, desc, cfg, args.model, reference)
+    stem = (f"table_{_frames_tag(frames)}_res{cfg.resolution:g}" + (f"_model-{Path(args.model).stem}" if args.model else "")
+            + ("_ref-lidar" if reference == "lidar" else ""))
     write_text_atomic(out_dir / f"{stem}.md", md)
-    write_json_atomic(out_dir / f"{stem}.json", {"sequence": args.seq, "frames": [frames.start, frames.stop],
+    write_json_atomic(out_dir / f"{stem}.json", {"sequence": args.seq, "frames": [frames.start, frames.stop], "reference": reference,
                                                   "resolution": cfg.resolution, "model": args.model, "rows": rows})
-    plot_sweep(rows, out_dir / f"{stem}_sweep.png")
+    plot_sweep(rows, out_dir / f"{stem}_sweep.png", "LiDAR-FOV" if reference == "lidar-fov" else "LiDAR")
     from mono_map.viz.topdown import render_topdown
 
     pics = [("LiDAR-FOV", trees["LiDAR-FOV"]), ("mono (keep 1.0)", trees["mono (keep 1.0)"]),
@@ -86,9 +97,9 @@ def run_table(args) -> int:
     return 0
 
 
-def table_markdown(rows: list[dict], seq: str, desc: str, cfg, model) -> str:
+def table_markdown(rows: list[dict], seq: str, desc: str, cfg, model, reference: str = "lidar-fov") -> str:
     lines = [f"Sequence {seq}, {desc}, {cfg.resolution:g} m cells, model {model or 'shipped binary'}; "
-             "reference = LiDAR-FOV map. Accuracy: share of the reference's known cells (volume-weighted, "
+             f"reference = {'LiDAR-FOV' if reference == 'lidar-fov' else 'whole LiDAR (360°)'} map. Accuracy: share of the reference's known cells (volume-weighted, "
              "finest cells) whose free/occupied state the map reproduces, unknown = wrong. Memory: OctoMap "
              "memoryUsage() of the probabilistic tree after the build.",
              "",
@@ -101,7 +112,7 @@ def table_markdown(rows: list[dict], seq: str, desc: str, cfg, model) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot_sweep(rows: list[dict], path: Path) -> None:
+def plot_sweep(rows: list[dict], path: Path, reference_label: str = "LiDAR-FOV") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -116,7 +127,7 @@ def plot_sweep(rows: list[dict], path: Path) -> None:
     ax1.plot(keeps, [100 * r["accuracy"] for r in mono], "o-", color="tab:blue", label="accuracy")
     ax1.plot(keeps, [100 * r["accuracy_covered"] for r in mono], "s--", color="tab:cyan", label="accuracy (covered cells)")
     ax1.set_xlabel("keep (fraction of lowest-entropy pixels)")
-    ax1.set_ylabel("accuracy vs LiDAR-FOV (%)", color="tab:blue")
+    ax1.set_ylabel(f"accuracy vs {reference_label} map (%)", color="tab:blue")
     ax2 = ax1.twinx()
     ax2.plot(keeps, [r["memory_mb"] for r in mono], "^-", color="tab:red", label="memory")
     ax2.axhline(ref["memory_mb"], color="tab:red", ls=":", lw=1, label="LiDAR-FOV memory")
