@@ -236,3 +236,19 @@ def test_cli_table_and_sweep(tiny_root, tmp_path, capsys):
 
     assert cli_main(common + ["--reference", "radar"]) == 2
     assert "--reference" in capsys.readouterr().err
+
+
+def test_topdown_picture_has_no_gaps_between_adjacent_cells():
+    """A contiguous row of 0.2 m cells fills every pixel of its picture row (no moire gaps)."""
+    from mono_map.viz.topdown import height_image, picture_extent
+
+    res = 0.2
+    k = np.arange(-300, 300)
+    pts = np.stack([(k + 0.5) * res, np.full(k.shape, -1.0), np.full(k.shape, 7.3)], axis=1)  # OctoMap centres
+    extent = picture_extent(pts, res)
+    img = height_image(pts, extent, res)
+    row = img[np.isfinite(img).any(axis=1)]
+    assert row.shape[0] == 1
+    filled = np.flatnonzero(np.isfinite(row[0]))
+    assert len(filled) == len(k) and np.all(np.diff(filled) == 1)
+    assert np.allclose(row[0, filled], 1.0)  # height = -y

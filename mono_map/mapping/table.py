@@ -123,7 +123,7 @@ def plot_sweep(rows: list[dict], path: Path, reference_label: str = "LiDAR-FOV")
     mono = sorted((r for r in rows if r["source"] == "mono"), key=lambda r: r["keep"])
     ref = next(r for r in rows if r["source"] == "lidar-fov")
     keeps = [r["keep"] for r in mono]
-    fig, ax1 = plt.subplots(figsize=(6, 4))
+    fig, ax1 = plt.subplots(figsize=(6, 4.6))
     ax1.plot(keeps, [100 * r["accuracy"] for r in mono], "o-", color="tab:blue", label="accuracy")
     ax1.plot(keeps, [100 * r["accuracy_covered"] for r in mono], "s--", color="tab:cyan", label="accuracy (covered cells)")
     ax1.set_xlabel("keep (fraction of lowest-entropy pixels)")
@@ -134,7 +134,8 @@ def plot_sweep(rows: list[dict], path: Path, reference_label: str = "LiDAR-FOV")
     ax2.set_ylabel("memory (MB, OctoMap memoryUsage)", color="tab:red")
     h1, l1 = ax1.get_legend_handles_labels()
     h2, l2 = ax2.get_legend_handles_labels()
-    ax1.legend(h1 + h2, l1 + l2, fontsize=8, loc="lower center")
+    ax1.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2,
+               frameon=False)  # below the axes: the curves use the whole plot
     ax1.grid(alpha=0.3)
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:

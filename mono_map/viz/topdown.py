@@ -29,6 +29,15 @@ def occupied_centres(tree) -> np.ndarray:
     return np.concatenate(pts) if pts else np.zeros((0, 3))
 
 
+def picture_extent(points: np.ndarray, res: float, pad: float = 2.0) -> tuple[float, float, float, float]:
+    """(xmin, xmax, zmin, zmax) around ``points`` (metres, world), padded, with edges on multiples of
+    ``res``: OctoMap cell centres ((k + 0.5) · cell) then never fall on a pixel border."""
+    x0, x1 = points[:, 0].min() - pad, points[:, 0].max() + pad
+    z0, z1 = points[:, 2].min() - pad, points[:, 2].max() + pad
+    return (float(np.floor(x0 / res) * res), float(np.ceil(x1 / res) * res),
+            float(np.floor(z0 / res) * res), float(np.ceil(z1 / res) * res))
+
+
 def height_image(points: np.ndarray, extent: tuple[float, float, float, float], res: float) -> np.ndarray:
     """H×W float image of max height (-y) per (x, z) pixel; NaN where empty. extent = (xmin, xmax, zmin, zmax)."""
     xmin, xmax, zmin, zmax = extent
@@ -55,9 +64,12 @@ def render_topdown(maps: list[tuple[str, object]], path: str | Path, res: float 
 
     clouds = [(title, occupied_centres(tree)) for title, tree in maps]
     allp = np.concatenate([c for _, c in clouds if len(c)]) if any(len(c) for _, c in clouds) else np.zeros((1, 3))
-    res = res or float(maps[0][1].getResolution())
-    pad = 2.0
-    extent = (allp[:, 0].min() - pad, allp[:, 0].max() + pad, allp[:, 2].min() - pad, allp[:, 2].max() + pad)
+    cell = float(maps[0][1].getResolution())
+    # one picture pixel per screen pixel (max height over the cells it covers), never finer than a cell:
+    # finer pixels leave empty rows/columns between cells (moire), coarser screen sampling drops cells
+    span = np.ptp(allp[:, 0]) + 4.0
+    res = res or max(cell, span / (4.5 * dpi * 0.8))
+    extent = picture_extent(allp, res)
     if height_range is None:
         hgt = -allp[:, 1]
         height_range = (float(np.percentile(hgt, 1)), float(np.percentile(hgt, 99)))
