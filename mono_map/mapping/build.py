@@ -185,7 +185,7 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
             points_valid += n_valid
             points_kept += len(pts)
             rays_cast += res.keys.n_rays
-            if n % stats_every == 0 or n == len(frames):
+            if n == 1 or n % stats_every == 0 or n == len(frames):  # first frame too: no zeros in the plots
                 last = integrator.stats()
             elapsed = time.perf_counter() - t_start
             fstats = {"index": int(i), "frames_per_s": n / elapsed if elapsed > 0 else 0.0,
