@@ -47,6 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     except MonoMapError as exc:
         print(f"mono-map: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # an output path that is a file, a full disk, no permission, ...
+        where = exc.filename if exc.filename is not None else "I/O"
+        print(f"mono-map: error: {where}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("mono-map: interrupted", file=sys.stderr)
         return 130

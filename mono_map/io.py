@@ -34,6 +34,20 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
             tmp_path.unlink()
 
 
+def output_dir(path: str | os.PathLike) -> Path:
+    """``path`` as an output directory, checked before any work is done (created when missing)."""
+    from mono_map.errors import MonoMapError
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise MonoMapError(f"--out: {path} is a file, not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise MonoMapError(f"--out: {path}: cannot create the directory ({exc.strerror})") from None
+    return path
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)

@@ -252,3 +252,13 @@ def test_topdown_picture_has_no_gaps_between_adjacent_cells():
     filled = np.flatnonzero(np.isfinite(row[0]))
     assert len(filled) == len(k) and np.all(np.diff(filled) == 1)
     assert np.allclose(row[0, filled], 1.0)  # height = -y
+
+
+def test_cli_output_directory_that_is_a_file(tiny_root, tmp_path, capsys):
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("x")
+    rc = cli_main(["build", "--seq", "tiny", "--data-root", str(tiny_root), "--source", "lidar-fov",
+                   "--frames", "0:1", "--out", str(blocker)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.strip() == f"mono-map: error: --out: {blocker} is a file, not a directory"
+    assert blocker.read_text() == "x"

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from mono_map.io import output_dir
+
 SOURCES = ("mono", "lidar", "lidar-fov")
 
 
@@ -136,11 +138,11 @@ def run_build(args) -> int:
         raise MonoMapError(f"--stride: must be a positive integer, got {args.stride}")
     cfg = octomap_config(args)
     validate_octomap_config(cfg)
+    out_dir = output_dir(args.out if args.out else Path("outputs") / f"seq{args.seq}")
     seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))
     frames, desc = parse_frames(args.frames, len(seq))
     print(f"mono-map build: sequence {args.seq}, {desc}, source {args.source}"
           + (f", keep {args.keep:g}" if args.source == "mono" else "") + f", {cfg.resolution:g} m cells")
-    out_dir = Path(args.out) if args.out else Path("outputs") / f"seq{args.seq}"
     observers = []
     if args.viewer or args.rrd:
         from mono_map.viz.rerun_stream import RerunMapLogger

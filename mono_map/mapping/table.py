@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from mono_map.io import output_dir
+
 
 def _cached(out_dir: Path, stem: str, build):
     bt = out_dir / f"{stem}.bt"
@@ -44,9 +46,9 @@ def run_table(args) -> int:
         if not 0 < k <= 1:
             raise MonoMapError(f"--keeps: {k} is outside (0, 1]")
     keeps = sorted(set(keeps) | {0.8, 1.0})
+    out_dir = output_dir(args.out if args.out else Path("outputs") / f"seq{args.seq}")
     seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))
     frames, desc = parse_frames(args.frames, len(seq))
-    out_dir = Path(args.out) if args.out else Path("outputs") / f"seq{args.seq}"
     print(f"mono-map eval --table: sequence {args.seq}, {desc}, {cfg.resolution:g} m cells, model "
           f"{args.model or 'shipped binary checkpoint'}")
 
