@@ -41,14 +41,18 @@ def key_codes(keys):
     return set(morton_codes(keys).tolist())
 
 
-@pytest.fixture(params=["c", "numpy"])
+@pytest.fixture(params=["c", "c-2threads", "numpy"])
 def kernel(request, monkeypatch):
-    """Run a test with the compiled DDA kernel and with the numpy fallback."""
+    """Run a test with the compiled DDA kernel (one thread, and split over two threads even for
+    small scans) and with the numpy fallback."""
     if request.param == "numpy":
         monkeypatch.setenv("MONO_MAP_NO_C", "1")
     else:
         if raycast_c.load_kernel() is None:
             pytest.fail("the compiled kernel must build here (gcc is part of the machine)")
+        monkeypatch.setenv("MONO_MAP_RAY_THREADS", "2" if request.param == "c-2threads" else "1")
+        if request.param == "c-2threads":
+            monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
     yield request.param
 
 

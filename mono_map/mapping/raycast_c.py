@@ -132,11 +132,48 @@ def load_kernel():
     return _LIB
 
 
+_PARALLEL_MIN_RAYS = 4096
+_POOL = None
+
+
+def _threads() -> int:
+    """Threads for the kernel: ``$MONO_MAP_RAY_THREADS`` (1 or 2), else 2 when the process may use 2 CPUs."""
+    env = os.environ.get("MONO_MAP_RAY_THREADS")
+    if env:
+        return max(1, min(2, int(env)))
+    try:
+        return min(2, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return min(2, os.cpu_count() or 1)
+
+
+def _pool():
+    global _POOL
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mm-dda")
+    return _POOL
+
+
+def _distinct_cells(fn, o, ko, resolution, lo, st, tree_max_val, e, ke, mark) -> np.ndarray:
+    """The kernel with a bitmap: distinct linear indices of the rays o -> e, marked 1 in ``mark``."""
+    cap = min(int(np.abs(ke - ko[None, :]).sum()) + 8 * len(e) + 16, len(mark))
+    out = np.empty(cap, dtype=np.int64)
+    n = int(fn(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, len(e), float(resolution),
+               lo.ctypes.data, st.ctypes.data, int(tree_max_val), out.ctypes.data, cap, mark.ctypes.data,
+               len(mark)))
+    if n < 0:   # -1 cannot happen (distinct cells <= min(steps, box)); -2: outside the box
+        raise AssertionError("ray left its bounding box")  # the margin covers DDA overshoot
+    return out[:n]
+
+
 def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.ndarray, key_ends: np.ndarray,
                 resolution: float, lo: np.ndarray, strides: np.ndarray, tree_max_val: int,
                 mark: np.ndarray | None = None) -> np.ndarray | int:
     """Run the kernel; returns linear box indices (int64, with repeats), or with ``mark`` (zeroed
-    uint8 bitmap over the box) the distinct indices, marking them 1 in ``mark``."""
+    uint8 bitmap over the box) the distinct indices, marking them 1 in ``mark`` (on two threads
+    for large frames: same set of cells, see ``_threads``)."""
     o = np.ascontiguousarray(origin32, dtype=np.float32)
     ko = np.ascontiguousarray(key_origin, dtype=np.int64)
     e = np.ascontiguousarray(ends32, dtype=np.float32)
@@ -146,14 +183,20 @@ def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.nda
     cap = int(np.abs(ke - ko[None, :]).sum()) + 8 * len(e) + 16
     if mark is not None:
         assert mark.dtype == np.uint8 and mark.flags.c_contiguous
-        cap = min(cap, len(mark))
-        out = np.empty(cap, dtype=np.int64)
-        n = int(fn(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, len(e), float(resolution),
-                   lo.ctypes.data, st.ctypes.data, int(tree_max_val), out.ctypes.data, cap, mark.ctypes.data,
-                   len(mark)))
-        if n < 0:   # -1 cannot happen (distinct cells <= min(steps, box)); -2: outside the box
-            raise AssertionError("ray left its bounding box")  # the margin covers DDA overshoot
-        return out[:n]
+        args = (o, ko, resolution, lo, st, tree_max_val)
+        if len(e) < _PARALLEL_MIN_RAYS or _threads() < 2:
+            return _distinct_cells(fn, *args, e, ke, mark)
+        # two halves of equal DDA work on two threads (ctypes releases the GIL), each deduplicating
+        # into its own bitmap; the union keeps the second half's cells the first did not have
+        steps = np.cumsum(np.abs(ke - ko[None, :]).sum(axis=1))
+        cut = int(np.searchsorted(steps, steps[-1] / 2))
+        mark_b = np.zeros_like(mark)
+        future = _pool().submit(_distinct_cells, fn, *args, e[cut:], ke[cut:], mark_b)
+        first = _distinct_cells(fn, *args, e[:cut], ke[:cut], mark)
+        second = future.result()
+        second = second[mark[second] == 0]
+        mark[second] = 1
+        return np.concatenate([first, second])
     cap = int(np.abs(ke - ko[None, :]).sum()) + 8 * len(e) + 16
     while True:
         out = np.empty(cap, dtype=np.int64)
