@@ -190,7 +190,7 @@ def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.nda
         # into its own bitmap; the union keeps the second half's cells the first did not have
         steps = np.cumsum(np.abs(ke - ko[None, :]).sum(axis=1))
         cut = int(np.searchsorted(steps, steps[-1] / 2))
-        mark_b = np.zeros_like(mark)
+        mark_b = np.zeros(mark.shape, dtype=np.uint8)  # calloc: pages are touched only where rays go
         future = _pool().submit(_distinct_cells, fn, *args, e[cut:], ke[cut:], mark_b)
         first = _distinct_cells(fn, *args, e[:cut], ke[:cut], mark)
         second = future.result()
