@@ -70,7 +70,8 @@ def load_checkpoint(path: str | os.PathLike, device: str = "cpu") -> tuple[Depth
     try:
         payload = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling failure means a corrupt file
-        raise MonoMapError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {str(exc)[:120]})") from None
+        raise MonoMapError(f"{path}: not a readable checkpoint (corrupt, truncated or not a torch file; "
+                           f"{type(exc).__name__})") from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise MonoMapError(f"{path}: not a mono-map depth checkpoint (missing format tag)")
     if payload.get("version") != CHECKPOINT_VERSION:
