@@ -155,6 +155,15 @@ def test_cli_build_and_eval(tiny_root, tmp_path, capsys):
     # the reference against itself is perfect
     assert cli_main(["eval", "--map", str(bts[0]), "--reference", str(bts[0]), "--json", str(js)]) == 0
     assert json.loads(js.read_text())["accuracy"] == 1.0
+    # no --map: the map `build` wrote for the same options, scored against the cached LiDAR-FOV map
+    capsys.readouterr()
+    same = [*common, "--model", "oracle", "--stride", "4"]
+    assert cli_main(["eval", *same, "--json", str(js)]) == 0
+    assert f"scoring {bts[1]}" in capsys.readouterr().out
+    assert json.loads(js.read_text())["accuracy"] == m["accuracy"]
+    assert cli_main(["eval", *same, "--keep", "0.5"]) == 2
+    err = capsys.readouterr().err
+    assert "mono-keep0.5" in err and "does not exist" in err and len(err.strip().splitlines()) == 1
 
 
 class BadPredictor:

@@ -53,7 +53,9 @@ def register(subparsers) -> None:
         description="Cell-state accuracy (unknown cells in the map count as wrong), coverage, accuracy over "
                     "covered cells, occupied precision/recall/F1, memory and leaf count. With --table: build "
                     "whatever is missing and print LiDAR-FOV, mono, mono keep 0.8 and a keep sweep.")
-    e.add_argument("--map", default=None, help="map to score (.bt)")
+    e.add_argument("--map", default=None,
+                   help="map to score (.bt); default: the map `mono-map build --seq SEQ --keep KEEP` wrote under --out")
+    e.add_argument("--keep", type=float, default=0.8, help="with no --map: the keep of that default map (default 0.8)")
     e.add_argument("--reference", default="lidar-fov", help="lidar-fov | lidar | path to a .bt (default lidar-fov); "
                    "with --table: lidar-fov, or lidar (the whole 360° LiDAR map, LiDAR-FOV then a scored row)")
     e.add_argument("--seq", default="00", help="sequence for a built reference / the table (default 00)")
@@ -191,6 +193,27 @@ def reference_path(args, seq, cfg, frames: range, out_dir: Path) -> Path:
     return path
 
 
+def default_map_path(args) -> Path:
+    """The .bt ``mono-map build --seq SEQ --keep KEEP`` (same --frames/--stride/--model/--out/OctoMap
+    options) writes; MonoMapError if it is not there yet."""
+    from mono_map.data.kitti import open_sequence
+    from mono_map.errors import MonoMapError
+    from mono_map.mapping.build import parse_frames
+    from mono_map.mapping.select import check_keep
+
+    check_keep(args.keep)
+    cfg = octomap_config(args)
+    seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames), generate=False)
+    frames, _ = parse_frames(args.frames, len(seq))
+    out_dir = Path(args.out) if args.out else Path("outputs") / f"seq{args.seq}"
+    path = out_dir / f"{map_stem('mono', args.keep, cfg, _frames_tag(frames), args.stride, args.model)}.bt"
+    if not path.is_file():
+        raise MonoMapError(f"--map: none given, and {path} does not exist yet "
+                           f"(build it: mono-map build --seq {args.seq} --keep {args.keep:g}, or pass --map)")
+    print(f"scoring {path}")
+    return path
+
+
 def run_eval(args) -> int:
     from mono_map.errors import MonoMapError
 
@@ -199,7 +222,7 @@ def run_eval(args) -> int:
 
         return run_table(args)
     if not args.map:
-        raise MonoMapError("--map: give a map to score (or --table)")
+        args.map = str(default_map_path(args))
     import json
 
     from mono_map.data.kitti import open_sequence
