@@ -10,7 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from mono_map.io import output_dir
+from mono_map.io import prepare_output_dir
+from mono_map.paths import sequence_output_dir
 
 DEFAULT_FRAMES = 500
 
@@ -41,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     n = parse_frames_arg(args.frames)
-    out_dir = output_dir(args.out if args.out else Path("outputs") / f"seq{args.seq}")
+    out_dir = prepare_output_dir(sequence_output_dir(args.out, args.seq))
     seq = open_sequence(args.data_root, args.seq, frames=n)
     frames, desc = parse_frames("all" if n is None else f"0:{min(n, len(seq))}", len(seq))
     print(f"mono-map demo: sequence {seq.name} ({'synthetic' if seq.is_synthetic else 'real KITTI'}, "

@@ -27,15 +27,15 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     try:
         yield tmp_path
         if tmp_path.exists():  # mkstemp makes 0600; give results the mode a plain open() would
-            os.chmod(tmp_path, 0o666 & ~_umask())
+            os.chmod(tmp_path, 0o666 & ~_UMASK)
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
 
 
-def output_dir(path: str | os.PathLike) -> Path:
-    """``path`` as an output directory, checked before any work is done (created when missing)."""
+def prepare_output_dir(path: str | os.PathLike) -> Path:
+    """Check ``path`` is usable as an output directory before any work is done (created when missing)."""
     from mono_map.errors import MonoMapError
 
     path = Path(path)
@@ -48,10 +48,15 @@ def output_dir(path: str | os.PathLike) -> Path:
     return path
 
 
-def _umask() -> int:
+def _read_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+# read once at import: reading the umask means setting it, which per write would race with other
+# threads creating files
+_UMASK = _read_umask()
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:

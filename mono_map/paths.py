@@ -31,6 +31,6 @@ def recipes_dir() -> Path:
     return Path(env) if env else REPO_DIR / "sequences"
 
 
-def output_dir(arg: str | os.PathLike | None = None) -> Path:
-    """Default output directory for maps, tables and pictures: ``--out`` > ``./outputs``."""
-    return Path(arg) if arg else Path("outputs")
+def sequence_output_dir(arg: str | os.PathLike | None, seq: str) -> Path:
+    """Where a sequence's maps, tables, pictures and recordings go: ``--out`` > ``./outputs/seq<SEQ>``."""
+    return Path(arg) if arg else Path("outputs") / f"seq{seq}"

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from mono_map.io import output_dir
+from mono_map.io import prepare_output_dir
+from mono_map.paths import sequence_output_dir
 
 SOURCES = ("mono", "lidar", "lidar-fov")
 
@@ -140,7 +141,7 @@ def run_build(args) -> int:
         raise MonoMapError(f"--stride: must be a positive integer, got {args.stride}")
     cfg = octomap_config(args)
     validate_octomap_config(cfg)
-    out_dir = output_dir(args.out if args.out else Path("outputs") / f"seq{args.seq}")
+    out_dir = prepare_output_dir(sequence_output_dir(args.out, args.seq))
     seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))
     frames, desc = parse_frames(args.frames, len(seq))
     print(f"mono-map build: sequence {args.seq}, {desc}, source {args.source}"
@@ -205,7 +206,7 @@ def default_map_path(args) -> Path:
     cfg = octomap_config(args)
     seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames), generate=False)
     frames, _ = parse_frames(args.frames, len(seq))
-    out_dir = Path(args.out) if args.out else Path("outputs") / f"seq{args.seq}"
+    out_dir = sequence_output_dir(args.out, args.seq)
     path = out_dir / f"{map_stem('mono', args.keep, cfg, _frames_tag(frames), args.stride, args.model)}.bt"
     if not path.is_file():
         raise MonoMapError(f"--map: none given, and {path} does not exist yet "

@@ -11,7 +11,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from mono_map.io import output_dir
+from mono_map.io import prepare_output_dir
+from mono_map.paths import sequence_output_dir
 
 
 def _cached(out_dir: Path, stem: str, build):
@@ -46,7 +47,7 @@ def run_table(args) -> int:
         if not 0 < k <= 1:
             raise MonoMapError(f"--keeps: {k} is outside (0, 1]")
     keeps = sorted(set(keeps) | {0.8, 1.0})
-    out_dir = output_dir(args.out if args.out else Path("outputs") / f"seq{args.seq}")
+    out_dir = prepare_output_dir(sequence_output_dir(args.out, args.seq))
     seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))
     frames, desc = parse_frames(args.frames, len(seq))
     print(f"mono-map eval --table: sequence {args.seq}, {desc}, {cfg.resolution:g} m cells, model "
@@ -72,7 +73,7 @@ def run_table(args) -> int:
         entries.append((label, "mono", keep, bt, stats))
     trees = {}
     for label, source, keep, bt, stats in entries:
-        tree = load_tree(bt)
+        tree = ref if bt == ref_bt else load_tree(bt)
         trees[label] = tree
         m = evaluate_map(tree, ref)
         rows.append({"method": label, "source": source, "keep": keep, "bt": str(bt),
