@@ -156,13 +156,22 @@ def _pool():
     return _POOL
 
 
+def _capacity(ke: np.ndarray, ko: np.ndarray) -> int:
+    """Cells the rays to key_ends ``ke`` can emit at most: their DDA steps plus slack."""
+    return int(np.abs(ke - ko[None, :]).sum()) + 8 * len(ke) + 16
+
+
+def _run(fn, o, ko, resolution, lo, st, tree_max_val, e, ke, out, mark=None) -> int:
+    """One kernel call; returns the number of indices written to ``out`` (< 0: see the C source)."""
+    return int(fn(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, len(e), float(resolution),
+                  lo.ctypes.data, st.ctypes.data, int(tree_max_val), out.ctypes.data, len(out),
+                  None if mark is None else mark.ctypes.data, 0 if mark is None else len(mark)))
+
+
 def _distinct_cells(fn, o, ko, resolution, lo, st, tree_max_val, e, ke, mark) -> np.ndarray:
     """The kernel with a bitmap: distinct linear indices of the rays o -> e, marked 1 in ``mark``."""
-    cap = min(int(np.abs(ke - ko[None, :]).sum()) + 8 * len(e) + 16, len(mark))
-    out = np.empty(cap, dtype=np.int64)
-    n = int(fn(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, len(e), float(resolution),
-               lo.ctypes.data, st.ctypes.data, int(tree_max_val), out.ctypes.data, cap, mark.ctypes.data,
-               len(mark)))
+    out = np.empty(min(_capacity(ke, ko), len(mark)), dtype=np.int64)
+    n = _run(fn, o, ko, resolution, lo, st, tree_max_val, e, ke, out, mark)
     if n < 0:   # -1 cannot happen (distinct cells <= min(steps, box)); -2: outside the box
         raise AssertionError("ray left its bounding box")  # the margin covers DDA overshoot
     return out[:n]
@@ -180,7 +189,6 @@ def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.nda
     ke = np.ascontiguousarray(key_ends, dtype=np.int64)
     lo = np.ascontiguousarray(lo, dtype=np.int64)
     st = np.ascontiguousarray(strides, dtype=np.int64)
-    cap = int(np.abs(ke - ko[None, :]).sum()) + 8 * len(e) + 16
     if mark is not None:
         assert mark.dtype == np.uint8 and mark.flags.c_contiguous
         args = (o, ko, resolution, lo, st, tree_max_val)
@@ -197,11 +205,10 @@ def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.nda
         second = second[mark[second] == 0]
         mark[second] = 1
         return np.concatenate([first, second])
-    cap = int(np.abs(ke - ko[None, :]).sum()) + 8 * len(e) + 16
+    cap = _capacity(ke, ko)
     while True:
         out = np.empty(cap, dtype=np.int64)
-        n = fn(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, len(e), float(resolution),
-               lo.ctypes.data, st.ctypes.data, int(tree_max_val), out.ctypes.data, cap, None, 0)
+        n = _run(fn, o, ko, resolution, lo, st, tree_max_val, e, ke, out)
         if n >= 0:
             return out[:n]
         cap *= 2

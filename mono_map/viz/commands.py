@@ -122,19 +122,22 @@ def _screenshot_headless(rrd: Path, png: Path, frame: int | None = None, timeout
             viewer.set_time("frame", sequence=int(timelines["frame"].end if frame is None else frame),
                             play_state="paused")
         time.sleep(2.0)  # let it paint the new time
+
+        def shoot(path: Path) -> None:
+            for attempt in range(4):  # a CPU rasterizer on a busy machine can miss the viewer's 15 s deadline
+                try:
+                    viewer.save_screenshot(str(path.resolve()))
+                    return
+                except TimeoutError:
+                    pass
+            raise _PaintTimeout()
+
         with atomic_path(png) as tmp:
             # the first paint of a new time starts decoding its images (shown as loading dots):
             # shoot once, give the decoder time, shoot again
-            for shot in range(2):
-                for attempt in range(4):  # a CPU rasterizer on a busy machine can miss the viewer's 15 s deadline
-                    try:
-                        viewer.save_screenshot(str(tmp.resolve()))
-                        break
-                    except TimeoutError:
-                        if attempt == 3:
-                            raise _PaintTimeout() from None
-                if shot == 0:
-                    time.sleep(5.0)
+            shoot(tmp)
+            time.sleep(5.0)
+            shoot(tmp)
             if not tmp.exists() or tmp.stat().st_size == 0:
                 raise MonoMapError(f"--screenshot: {png}: the viewer did not write a picture")
     finally:

@@ -67,8 +67,8 @@ def render_topdown(maps: list[tuple[str, object]], path: str | Path, res: float 
     cell = float(maps[0][1].getResolution())
     # one picture pixel per screen pixel (max height over the cells it covers), never finer than a cell:
     # finer pixels leave empty rows/columns between cells (moire), coarser screen sampling drops cells
-    span = np.ptp(allp[:, 0]) + 4.0
-    res = res or max(cell, span / (4.5 * dpi * 0.8))
+    x0, x1 = picture_extent(allp, cell)[:2]
+    res = res or max(cell, (x1 - x0) / (4.5 * dpi * 0.8))
     extent = picture_extent(allp, res)
     if height_range is None:
         hgt = -allp[:, 1]
