@@ -1,7 +1,6 @@
 """CLI: frame selection, predict on an image folder, eval-depth on the real KITTI object frames."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +14,6 @@ from mono_map.depth.networks import DepthNet, named_config
 from mono_map.errors import MonoMapError
 
 
-OBJECT = Path(__file__).resolve().parents[2] / "shared" / "kitti_real" / "object" / "training"  # /work/shared/...
 TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),
             num_bins=16, input_height=64, input_width=192)
 
@@ -53,11 +51,10 @@ def test_predict_image_folder(tmp_path, tiny_ckpt):
     assert z["probs"].shape[0] == 16 and z["depth"].shape == (60, 200)
 
 
-def test_eval_depth_on_real_object_frames(tmp_path, tiny_ckpt):
-    if not OBJECT.is_dir():
-        pytest.fail(f"{OBJECT}: real KITTI object frames missing")
+def test_eval_depth_on_real_object_frames(tmp_path, tiny_ckpt, kitti_real):
+    obj = kitti_real / "object" / "training"
     out = tmp_path / "ev"
-    assert main(["eval-depth", "--kitti-object", str(OBJECT), "--model", str(tiny_ckpt), "--out", str(out),
+    assert main(["eval-depth", "--kitti-object", str(obj), "--model", str(tiny_ckpt), "--out", str(out),
                  "--threads", "1"]) == 0
     res = json.loads((out / "depth_object.json").read_text())["results"]["binary"]
     assert res["n_frames"] == 3 and res["n_pixels"] > 10000  # HDL-64E points inside image_2

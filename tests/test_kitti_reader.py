@@ -22,10 +22,8 @@ from mono_map.data.kitti import (
     read_velodyne_bin,
 )
 from mono_map.errors import MonoMapError
-from mono_map.paths import KITTI_ASSETS_DIR, REPO_DIR
+from mono_map.paths import KITTI_ASSETS_DIR
 
-SHARED = REPO_DIR.parent / "shared" / "kitti_real"
-needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason="../shared/kitti_real not beside the repo")
 
 H, W = 24, 40  # tiny images keep the hand-made sequence fast
 
@@ -101,21 +99,19 @@ def test_frame_poses_use_cam2_offset(tmp_path):
     np.testing.assert_allclose(seq.poses_cam0[0], np.eye(4), atol=1e-6)
 
 
-@needs_shared
-def test_real_poses_and_calib_files():
-    poses = read_poses_file(SHARED / "odometry" / "poses" / "00.txt")
+def test_real_poses_and_calib_files(kitti_real):
+    poses = read_poses_file(kitti_real / "odometry" / "poses" / "00.txt")
     assert poses.shape == (4541, 4, 4)
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
     assert 5 < steps.mean() * 10 < 12  # ~8 m/s at 10 Hz
-    data = read_calib_file(SHARED / "odometry" / "sequences" / "00" / "calib.txt")  # trailing spaces, no newline
+    data = read_calib_file(kitti_real / "odometry" / "sequences" / "00" / "calib.txt")  # trailing spaces, no newline
     assert set(data) >= {"P0", "P1", "P2", "P3", "Tr"}
 
 
-@needs_shared
 @pytest.mark.parametrize("frame", ["000000", "000001", "000002"])
-def test_real_lidar_projects_onto_real_image(frame):
+def test_real_lidar_projects_onto_real_image(frame, kitti_real):
     """Real HDL-64E scan through real object calibration into the real image: geometry is consistent."""
-    obj = SHARED / "object" / "training"
+    obj = kitti_real / "object" / "training"
     calib = read_object_calibration(obj / "calib" / f"{frame}.txt")
     scan = read_velodyne_bin(obj / "velodyne" / f"{frame}.bin")
     assert 100_000 < len(scan) < 130_000
