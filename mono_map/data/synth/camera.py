@@ -28,6 +28,7 @@ class Lighting:
     horizon: np.ndarray
     haze_distance: float
     exposure: float
+    albedo_gain: np.ndarray | None = None   # (materials, 3) albedo multipliers (domain randomisation); None = 1
 
     @classmethod
     def from_recipe(cls, lp) -> "Lighting":
@@ -120,7 +121,8 @@ def shade(scene, town, light: Lighting, origins: np.ndarray, dirs: np.ndarray, n
         ndl[li[occ]] = 0.0
     up = np.clip(-n[:, 1], -1, 1)
     amb = light.ambient[None, :] * (0.65 + 0.35 * up)[:, None]
-    c = surf.albedo * (amb + light.sun_color[None, :] * ndl[:, None])
+    albedo = surf.albedo if light.albedo_gain is None else surf.albedo * light.albedo_gain[mat[idx]]
+    c = albedo * (amb + light.sun_color[None, :] * ndl[:, None])
     mi = np.nonzero(surf.mirror > 0)[0]
     # glossy highlight on paint / glass / metal
     if bounce and len(mi):
