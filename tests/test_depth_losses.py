@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from mono_map.depth.losses import HEADS, decode, head_loss
+from mono_map.depth.heads import HEADS, decode
+from mono_map.depth.losses import head_loss
 from mono_map.depth.networks import DepthNet, named_config
 
 

@@ -147,13 +147,12 @@ def run_predict(args) -> int:
         if args.npz:
             import torch
 
-            from mono_map.depth.losses import decode
-
             raw, _ = pred.raw_outputs([img])
-            probs = decode(pred.head, raw, pred.bins, with_probs=True)["probs"]
+            probs = pred.decode(raw, with_probs=True)["probs"]
             with atomic_path(out / "npz" / f"{name}.npz") as tmp:
                 np.savez_compressed(tmp, probs=None if probs is None else probs[0].numpy().astype(np.float16),
-                                    bin_centres=pred.bins.centres, depth=p.depth, entropy=p.entropy)
+                                    bin_centres=pred.bins.centres, depth=p.depth, entropy=p.entropy,
+                                    p_beyond=p.p_beyond)
     print(f"wrote {len(items)} predictions to {out}/(depth|entropy|vis{'|npz' if args.npz else ''})")
     return 0
 

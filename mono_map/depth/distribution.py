@@ -32,6 +32,13 @@ def expected_depth(probs: torch.Tensor, bins: DepthBins, space: str = "log") -> 
     raise ValueError(f"space must be 'log' or 'linear', got {space!r}")
 
 
+def std_log_depth(probs: torch.Tensor, bins: DepthBins) -> torch.Tensor:
+    """(B,H,W) standard deviation of log-depth under the distribution (a second uncertainty measure)."""
+    lc = _centres(bins, probs, True)
+    mu = (probs * lc).sum(1, keepdim=True)
+    return (probs * (lc - mu) ** 2).sum(1).clamp_min(0).sqrt()
+
+
 def argmax_depth(probs: torch.Tensor, bins: DepthBins) -> torch.Tensor:
     """(B,H,W) centre depth of the most likely bin."""
     c = torch.as_tensor(bins.centres, dtype=probs.dtype, device=probs.device)

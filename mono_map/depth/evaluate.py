@@ -44,8 +44,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
     import torch
     import torch.nn.functional as F
 
-    from mono_map.depth.distribution import top_modes
-    from mono_map.depth.losses import decode
+    from mono_map.depth.distribution import std_log_depth, top_modes
     from mono_map.progress import progress
 
     bins = predictor.bins
@@ -62,13 +61,11 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
             times.append(1000 * (time.perf_counter() - t0))
         out, geom = predictor.raw_outputs([image])
         with torch.inference_mode():
-            r_log = decode(predictor.head, out, bins, "log", with_probs=True)
-            r_lin = decode(predictor.head, out, bins, "linear")
+            r_log = predictor.decode(out, "log", with_probs=True)
+            r_lin = predictor.decode(out, "linear")
             probs = r_log["probs"]
             if probs is not None:  # second uncertainty measure: std of log-depth under the distribution
-                lc = torch.as_tensor(bins.log_centres, dtype=probs.dtype).view(1, -1, 1, 1)
-                mu = (probs * lc).sum(1, keepdim=True)
-                std_log = ((probs * (lc - mu) ** 2).sum(1)).clamp_min(0).sqrt()
+                std_log = std_log_depth(probs, bins)
             else:
                 std_log = torch.zeros_like(r_log["entropy"])
             maps = torch.stack([r_log["depth"], r_lin["depth"], r_log["argmax"], r_log["entropy"], std_log], 1)

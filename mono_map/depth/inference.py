@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from mono_map.depth.losses import decode
+from mono_map.depth.heads import decode
 from mono_map.depth.networks import DepthNet, ModelConfig
 from mono_map.errors import MonoMapError
 from mono_map.paths import CHECKPOINT_DIR
@@ -30,6 +30,7 @@ class DepthPrediction:
     entropy: np.ndarray               # H×W float32, nats (non-distribution heads: their uncertainty)
     probs: np.ndarray | None = None   # K×H×W float32 (softmax over logits), only if asked
     argmax: np.ndarray | None = None  # H×W float32, metres, centre of the most likely bin
+    p_beyond: np.ndarray | None = None  # H×W float32, probability of no surface within the bin range (sky)
 
 
 def default_checkpoint(head: str = "binary") -> Path:
@@ -162,6 +163,11 @@ class DepthPredictor:
         t = t[..., :fh, :fw]
         return F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False) if (fh, fw) != (h, w) else t
 
+    def decode(self, outputs: torch.Tensor, space: str | None = None, with_probs: bool = False) -> dict:
+        """Raw head outputs -> depth, entropy, argmax, p_beyond, probs (see :func:`heads.decode`)."""
+        return decode(self.model.head, outputs, self.bins, space or self.space, with_probs=with_probs,
+                      beyond=self.cfg.beyond)
+
     @torch.inference_mode()
     def raw_outputs(self, images: list[np.ndarray]) -> tuple[torch.Tensor, tuple]:
         """Raw head outputs (uncropped network resolution) and the geometry ``to_image`` needs."""
@@ -174,8 +180,8 @@ class DepthPredictor:
         if not images:
             return []
         out, geom = self.raw_outputs(images)
-        res = decode(self.model.head, out, self.bins, self.space, with_probs=with_probs)
-        stats = self.to_image(torch.stack([res["depth"], res["entropy"], res["argmax"]], 1), geom)
+        res = self.decode(out, with_probs=with_probs)
+        stats = self.to_image(torch.stack([res["depth"], res["entropy"], res["argmax"], res["p_beyond"]], 1), geom)
         depth = stats[:, 0].clamp(self.bins.min_depth, self.bins.max_depth)
         probs = self.to_image(res["probs"], geom) if (with_probs and res["probs"] is not None) else None
         preds = []
@@ -183,7 +189,8 @@ class DepthPredictor:
             preds.append(DepthPrediction(
                 depth=depth[b].cpu().numpy().astype(np.float32), entropy=stats[b, 1].cpu().numpy().astype(np.float32),
                 probs=None if probs is None else probs[b].cpu().numpy().astype(np.float32),
-                argmax=stats[b, 2].cpu().numpy().astype(np.float32)))
+                argmax=stats[b, 2].cpu().numpy().astype(np.float32),
+                p_beyond=stats[b, 3].clamp(0, 1).cpu().numpy().astype(np.float32)))
         return preds
 
     def predict(self, image: np.ndarray, with_probs: bool = False) -> DepthPrediction:

@@ -15,7 +15,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from mono_map.depth.bins import DepthBins
-from mono_map.depth.losses import get_head
+from mono_map.depth.heads import get_head
 from mono_map.errors import MonoMapError
 
 
@@ -39,6 +39,7 @@ class ModelConfig:
     max_depth: float = 80.0
     input_height: int = 192
     input_width: int = 640
+    beyond: bool = False                     # trained with beyond-range (sky) targets: heads say p(no surface)
 
     @property
     def bins(self) -> DepthBins:
@@ -76,6 +77,14 @@ NAMED_CONFIGS = {
         name="paper-resnet50", block="bottleneck", layers=(3, 4, 6, 3), widths=(64, 128, 256, 512),
         stem_width=64, spp_levels=(1, 2, 4, 8), spp_width=128, decoder_widths=(512, 256, 128),
         input_height=352, input_width=1216),
+    # model v2's mapping network: ResNet-18 layout (2 basic blocks per stage) at 3/4 width, U-Net decoder
+    "resnet18": ModelConfig(
+        name="resnet18", block="basic", layers=(2, 2, 2, 2), widths=(48, 96, 192, 384), stem_width=48,
+        spp_levels=(1, 2, 4), spp_width=96, decoder_widths=(192, 96, 64), beyond=True),
+    # model v2's comparison network for the heads: the ResNet-18 layout at half width
+    "resnet18-half": ModelConfig(
+        name="resnet18-half", block="basic", layers=(2, 2, 2, 2), widths=(32, 64, 128, 256), stem_width=32,
+        spp_levels=(1, 2, 4), spp_width=64, decoder_widths=(128, 64, 48), beyond=True),
 }
 
 
@@ -201,7 +210,7 @@ class DepthNet(nn.Module):
         p = cfg.dropout if self.head.dropout else 0.0
         self.tail = nn.Sequential(nn.Dropout2d(p) if p else nn.Identity(), conv_bn_relu(d4, d4),
                                   nn.Dropout2d(p) if p else nn.Identity(),
-                                  nn.Conv2d(d4, self.head.out_channels(bins), 3, 1, 1))
+                                  nn.Conv2d(d4, self.head.out_channels(bins, cfg.beyond), 3, 1, 1))
         self.register_buffer("mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1), persistent=False)
 

@@ -34,6 +34,12 @@ class DataConfig:
     frame_step: int = 1                              # use every n-th of them
     target: str = "lidar"                            # "lidar" (velodyne into image_2) or "dense" (depth_2 PNGs)
     cache_dir: str = "data/cache"
+    trainset: str = ""                               # randomised-town cache (data/synth/trainset.py); "" = sequences
+    towns: tuple = ()                                # trainset towns to train on (empty = all but the validation town)
+    validation_town: str = "val09"                   # held-out trainset town for the learning curve ("" = none)
+    validation_frames: int = 24                      # frames of it scored at every validation
+    sky_stride: int = 3                              # lidar targets: no-surface (sky) labels on this pixel grid
+    max_targets: int = 12000                         # target pixels sampled per crop (0 = all; dense targets)
 
 
 @dataclass(frozen=True)
@@ -51,6 +57,9 @@ class TrainConfig:
     log_every: int = 25
     work_dir: str = "outputs/train"                  # resumable checkpoints (with optimizer state)
     output: str = ""                                 # final checkpoint ("" -> <work_dir>/<name>/final.pt)
+    schedule: str = "step"                           # "step" (x lr_decay at lr_decay_at) or "cosine" (to lr·lr_decay)
+    channels_last: bool = False                      # NHWC memory format (measured ~5 % faster on this CPU)
+    validate_every: int = 0                          # steps between validations (0 = never)
 
 
 @dataclass(frozen=True)
@@ -108,6 +117,10 @@ def validate_run_config(cfg: RunConfig) -> None:
         raise MonoMapError(f"{src}: sequence {sorted(held)} is the held-out evaluation sequence; never train on it")
     if cfg.data.target not in ("lidar", "dense"):
         raise MonoMapError(f"{src}: data.target must be 'lidar' or 'dense', got {cfg.data.target!r}")
+    if cfg.train.schedule not in ("step", "cosine"):
+        raise MonoMapError(f"{src}: train.schedule must be 'step' or 'cosine', got {cfg.train.schedule!r}")
+    if cfg.data.trainset and cfg.data.validation_town and cfg.data.validation_town in cfg.data.towns:
+        raise MonoMapError(f"{src}: the validation town {cfg.data.validation_town} must not be a training town")
     if cfg.train.steps < 1 or cfg.train.batch_size < 1:
         raise MonoMapError(f"{src}: train.steps and train.batch_size must be >= 1")
     cfg.model_config()  # validates architecture / head
@@ -173,6 +186,140 @@ def build_cache(cfg: RunConfig, model_cfg) -> tuple[np.ndarray, np.ndarray, Path
         with atomic_path(path) as tmp:
             np.save(tmp, arr)
     return np.load(img_path, mmap_mode="r"), np.load(dep_path, mmap_mode="r"), cache_dir
+
+
+# ------------------------------------------------------------------ randomised-town cache
+class TrainsetSampler:
+    """Random crops from the randomised-town cache (:mod:`mono_map.data.synth.trainset`).
+
+    Frames that finish rendering while training runs are picked up at every ``refresh()``.
+    Targets are metres, 0 = no value, +inf = no surface (sky): ``lidar`` targets mark sky on a
+    ``sky_stride`` grid (so sky does not outweigh the sparse returns), ``dense`` targets everywhere.
+    """
+
+    def __init__(self, data: DataConfig):
+        from mono_map.data.synth.trainset import open_trainset
+
+        names = list(data.towns) or None
+        towns = [t for t in open_trainset(trainset_root(data), names)
+                 if t.path.name != data.validation_town]
+        if not towns:
+            raise MonoMapError(f"{data.trainset}: no training towns in the cache (render them with "
+                               "tools/render_trainset.py)")
+        self.towns, self.data = towns, data
+        self.refresh()
+
+    def refresh(self) -> int:
+        self.index = [(t, f) for t in self.towns for f in t.done_frames()]
+        if not self.index:
+            raise MonoMapError(f"{self.data.trainset}: no rendered frames yet")
+        return len(self.index)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        t, f = self.index[k]
+        return frame_target(t, int(f), self.data.target, self.data.sky_stride)
+
+    def batch(self, batch: int, crop: tuple, rng: np.random.Generator, augment: bool):
+        H, W = self.towns[0].meta["height"], self.towns[0].meta["width"]
+        ch, cw = min(crop[0], H), min(crop[1], W)
+        xs = np.empty((batch, 3, ch, cw), np.float32)
+        ys = np.empty((batch, ch, cw), np.float32)
+        for b in range(batch):
+            img, dep = self.frame(int(rng.integers(len(self.index))))
+            top, left = int(rng.integers(H - ch + 1)), int(rng.integers(W - cw + 1))
+            img = img[top:top + ch, left:left + cw].astype(np.float32) / 255.0
+            dep = dep[top:top + ch, left:left + cw]
+            if augment and rng.random() < 0.5:
+                img = augment_colour(img, rng)
+            if rng.random() < 0.5:
+                img, dep = img[:, ::-1], dep[:, ::-1]
+            if self.data.max_targets:
+                dep = subsample_targets(dep, self.data.max_targets, rng)
+            xs[b] = img.transpose(2, 0, 1)
+            ys[b] = dep
+        return xs, ys
+
+
+def trainset_root(data: DataConfig) -> Path:
+    """The cache directory a config names ("default" = ``trainset.default_root()``)."""
+    from mono_map.data.synth.trainset import default_root
+
+    return default_root() if data.trainset == "default" else Path(data.trainset).expanduser()
+
+
+def frame_target(town, f: int, target: str, sky_stride: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """(image uint8 (H,W,3), target metres (H,W): 0 none, +inf no surface) of a cached frame."""
+    from mono_map.data.synth.trainset import decode_depth
+
+    dense, sky = decode_depth(town.dense[f])
+    if target == "dense":
+        dep = dense
+    else:
+        dep, _ = decode_depth(town.lidar[f])
+        grid = np.zeros_like(sky)
+        grid[::sky_stride, ::sky_stride] = True
+        sky = sky & grid & (dep == 0)
+    dep = np.where(sky, np.inf, dep).astype(np.float32)
+    return np.asarray(town.image[f]), dep
+
+
+def subsample_targets(dep: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Keep at most ``n`` random target pixels of a crop (the rest set to 0 = no value)."""
+    idx = np.flatnonzero(dep.ravel() > 0)
+    if len(idx) <= n:
+        return dep
+    out = np.zeros(dep.size, np.float32)
+    keep = rng.choice(idx, n, replace=False)
+    out[keep] = dep.ravel()[keep]
+    return out.reshape(dep.shape)
+
+
+def validation_frames(data: DataConfig) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(image, LiDAR target metres with +inf = sky) of the validation town's first frames (every 10th)."""
+    from mono_map.data.synth.trainset import open_trainset
+
+    towns = open_trainset(trainset_root(data), [data.validation_town])
+    if not towns:
+        return []
+    t = towns[0]
+    done = t.done_frames()[::10][:data.validation_frames]
+    return [frame_target(t, int(f), "lidar", 1) for f in done]
+
+
+def validate(model, frames, head, bins, beyond: bool) -> dict:
+    """AbsRel, δ1 and sparsification AUC (ARE, by entropy) against LiDAR within the bin range, and
+    beyond-range accuracy on sky pixels, of ``model`` on full validation frames."""
+    import torch
+
+    from mono_map.depth.heads import decode
+    from mono_map.eval.sparsification import sparsification
+
+    was = model.training
+    model.eval()
+    gts, ds, es, sky_ok, sky_n = [], [], [], 0, 0
+    with torch.inference_mode():
+        for img, dep in frames:
+            H, W = img.shape[:2]
+            Hp, Wp = -(-H // 32) * 32, -(-W // 32) * 32
+            x = np.pad(img, ((0, Hp - H), (0, Wp - W), (0, 0)), mode="edge")
+            x = torch.from_numpy(x).permute(2, 0, 1)[None].float() / 255.0
+            r = decode(head, model(x)[..., :H, :W], bins, "log", beyond=beyond)
+            d, e, pb = r["depth"][0].numpy(), r["entropy"][0].numpy(), r["p_beyond"][0].numpy()
+            m = (dep > 0) & np.isfinite(dep) & (dep <= bins.max_depth)
+            gts.append(dep[m]), ds.append(d[m]), es.append(e[m])
+            sky = np.isinf(dep)
+            sky_ok += int((pb[sky] > 0.5).sum())
+            sky_n += int(sky.sum())
+    model.train(was)
+    gt, d, e = np.concatenate(gts), np.concatenate(ds), np.concatenate(es)
+    ratio = np.maximum(d / gt, gt / d)
+    sp = sparsification(gt, d, e)
+    return {"abs_rel": float(np.mean(np.abs(d - gt) / gt)), "delta1": float(np.mean(ratio < 1.25)),
+            "auc_are": float(sp["auc"]["are"]),
+            "sky_beyond_acc": sky_ok / sky_n if sky_n else None, "frames": len(frames)}
 
 
 # ------------------------------------------------------------------ batches
@@ -275,9 +422,9 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
     mcfg = cfg.model_config()
     model = DepthNet(mcfg).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=t.lr)
-    work = Path(t.work_dir) / cfg.name
+    work = Path(t.work_dir).expanduser() / cfg.name
     last = work / "last.pt"
-    start, wall_before = 0, 0.0
+    start, wall_before, cpu_before = 0, 0.0, 0.0
     if resume and last.is_file():
         m, payload = load_checkpoint(last, device)
         model.load_state_dict(m.state_dict())
@@ -285,29 +432,51 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
             opt.load_state_dict(payload["optimizer"])
         start = int(payload["training"].get("step", 0))
         wall_before = float(payload["training"].get("wall_time_s", 0.0))
+        cpu_before = float(payload["training"].get("cpu_time_s", 0.0))
         if rank == 0:
             log(f"resuming {cfg.name} from {last} at step {start}")
-    images, depths = data if data is not None else build_cache(cfg, mcfg)[:2]
+    sampler = None
+    if data is not None:
+        images, depths = data
+    elif cfg.data.trainset:
+        sampler = TrainsetSampler(cfg.data)
+        images = depths = None
+    else:
+        images, depths = build_cache(cfg, mcfg)[:2]
+    val = validation_frames(cfg.data) if (cfg.data.trainset and t.validate_every and rank == 0) else []
+    if t.channels_last:
+        model = model.to(memory_format=torch.channels_last)
     if world > 1:
         model_ddp = torch.nn.parallel.DistributedDataParallel(model, device_ids=None if device == "cpu" else [device])
     else:
         model_ddp = model
     model.train()
     decay_step = int(math.ceil(t.lr_decay_at * t.steps))
-    t0 = time.time()
+    t0, c0 = time.time(), time.process_time()
     losses: list[float] = []
     meta = {}
+    work.mkdir(parents=True, exist_ok=True)
+    curve_path = work / "curve.jsonl"
+    best = _best_so_far(curve_path)
     steps = range(start, t.steps)
     it = progress(steps, total=len(steps), desc=f"train {cfg.name}", unit="step") if rank == 0 else steps
+    n_frames = len(sampler) if sampler is not None else len(depths)
     for step in it:
-        lr = t.lr * (t.lr_decay if step >= decay_step else 1.0)
+        lr = learning_rate(t, step, decay_step)
         for g in opt.param_groups:
             g["lr"] = lr
         rng = np.random.default_rng([t.seed, rank, step])
-        x, y = sample_batch(images, depths, t.batch_size, t.crop, rng, t.augment)
+        if sampler is not None:
+            if step % 500 == 0:
+                n_frames = sampler.refresh()
+            x, y = sampler.batch(t.batch_size, t.crop, rng, t.augment)
+        else:
+            x, y = sample_batch(images, depths, t.batch_size, t.crop, rng, t.augment)
         x, y = torch.from_numpy(x).to(device), torch.from_numpy(y).to(device)
+        if t.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
         out, tgt = outputs_at_targets(model_ddp(x, upsample=False), y)
-        loss = head_loss(model.head, out, tgt, mcfg.bins)
+        loss = head_loss(model.head, out, tgt, mcfg.bins, beyond=mcfg.beyond)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -319,25 +488,57 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
             el = time.time() - t0
             eta = el / (done - start) * (t.steps - done)
             log(f"[{cfg.name}] step {done}/{t.steps} loss {np.mean(losses[-t.log_every:]):.4f} lr {lr:.1e} "
-                f"elapsed {el/60:.1f} min ETA {eta/60:.1f} min")
+                f"frames {n_frames} elapsed {el/60:.1f} min ETA {eta/60:.1f} min")
+        cpu = cpu_before + time.process_time() - c0
+        if rank == 0 and val and (done % t.validate_every == 0 or done == t.steps):
+            v = validate(model, val, model.head, mcfg.bins, mcfg.beyond)
+            v.update(step=done, cpu_hours=round(cpu / 3600, 4), wall_hours=round((wall_before + time.time() - t0) / 3600, 4),
+                     train_frames=n_frames, loss=float(np.mean(losses[-t.log_every:])))
+            with open(curve_path, "a") as fh:
+                fh.write(json.dumps(v) + "\n")
+            log(f"[{cfg.name}] validation at step {done}: AbsRel {v['abs_rel']:.3f} d1 {v['delta1']:.3f} "
+                f"AUC-ARE {v['auc_are']:.4f} sky->beyond {v['sky_beyond_acc']}")
+            if best is None or v["abs_rel"] < best:
+                best = v["abs_rel"]
+                meta = _metadata(cfg, done, wall_before + time.time() - t0, losses, world, n_frames, cpu)
+                meta["validation"] = v
+                save_checkpoint(work / "best.pt", model, meta)
         if rank == 0 and (done % t.checkpoint_every == 0 or done == t.steps):
-            meta = _metadata(cfg, done, wall_before + time.time() - t0, losses, world, len(depths))
+            meta = _metadata(cfg, done, wall_before + time.time() - t0, losses, world, n_frames, cpu)
             save_checkpoint(last, model, meta, optimizer_state=opt.state_dict())
     if world > 1:
         tdist.barrier()
-    meta = _metadata(cfg, t.steps, wall_before + time.time() - t0, losses, world, len(depths))
+    meta = _metadata(cfg, t.steps, wall_before + time.time() - t0, losses, world, n_frames,
+                     cpu_before + time.process_time() - c0)
     meta["param_checksum"] = float(sum(p.detach().double().sum().item() for p in model.parameters()))
     if rank == 0:
-        out = Path(t.output) if t.output else work / "final.pt"
+        out = Path(t.output).expanduser() if t.output else work / "final.pt"
         save_checkpoint(out, model, meta)
         meta["output"] = str(out)
         log(f"[{cfg.name}] wrote {out} ({out.stat().st_size/1e6:.1f} MB), wall time {meta['wall_time_s']/60:.1f} min")
     return meta
 
 
-def _metadata(cfg: RunConfig, step: int, wall: float, losses: list, world: int, n_frames: int) -> dict:
+def learning_rate(t: TrainConfig, step: int, decay_step: int) -> float:
+    """Step decay (x lr_decay from decay_step on) or cosine from lr to lr·lr_decay over t.steps."""
+    if t.schedule == "cosine":
+        f = min(step / max(t.steps, 1), 1.0)
+        return t.lr * (t.lr_decay + (1 - t.lr_decay) * 0.5 * (1 + math.cos(math.pi * f)))
+    return t.lr * (t.lr_decay if step >= decay_step else 1.0)
+
+
+def _best_so_far(curve_path: Path) -> float | None:
+    if not curve_path.is_file():
+        return None
+    vals = [json.loads(line)["abs_rel"] for line in curve_path.read_text().splitlines() if line.strip()]
+    return min(vals) if vals else None
+
+
+def _metadata(cfg: RunConfig, step: int, wall: float, losses: list, world: int, n_frames: int,
+              cpu: float = 0.0) -> dict:
     return {
-        "name": cfg.name, "step": step, "wall_time_s": round(wall, 1), "world_size": world,
+        "name": cfg.name, "step": step, "wall_time_s": round(wall, 1), "cpu_time_s": round(cpu, 1),
+        "world_size": world,
         "final_loss": float(np.mean(losses[-50:])) if losses else None,
         "config_file": cfg.source, "data": {**asdict(cfg.data), "n_frames": int(n_frames)},
         "train": asdict(cfg.train), "model": dict(cfg.model),
