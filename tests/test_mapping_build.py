@@ -271,3 +271,29 @@ def test_cli_output_directory_that_is_a_file(tiny_root, tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and err.strip() == f"mono-map: error: --out: {blocker} is a file, not a directory"
     assert blocker.read_text() == "x"
+
+
+class SkyTopPredictor:
+    """The oracle's depth, with the top half of every image declared "no surface within range"."""
+
+    def __init__(self):
+        self.oracle = NoisyGroundTruthPredictor()
+
+    def predict_frame(self, seq, i, image=None):
+        p = self.oracle.predict_frame(seq, i, image)
+        p.p_beyond = np.zeros_like(p.depth)
+        p.p_beyond[: p.depth.shape[0] // 2] = 0.9
+        p.entropy = np.where(np.isfinite(p.entropy), 0.0, p.entropy).astype(np.float32)  # sky top most confident
+        return p
+
+
+def test_build_never_inserts_beyond_range_pixels(tiny_root):
+    seq = open_sequence(tiny_root, "tiny", generate=False)
+    rec = Recorder()
+    build_map(seq, "mono", 0.5, frames=range(0, 1), stride=4, predictor=SkyTopPredictor(), observers=[rec],
+              show_progress=False)
+    mask = rec.updates[0].keep_mask
+    h = mask.shape[0] // 2
+    assert mask.any() and not mask[:h].any()
+    with pytest.raises(MonoMapError, match="p_beyond"):
+        select_pixels(np.ones((4, 4)), np.zeros((4, 4)), 1.0, p_beyond=np.zeros((3, 4)))

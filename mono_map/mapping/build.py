@@ -167,7 +167,8 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
                 if np.isnan(depth).any():
                     raise MonoMapError(f"frame {i}: predicted depth has {int(np.isnan(depth).sum())} NaN pixels "
                                        f"(model failure)")
-                mask, valid = select_pixels(depth, entropy, keep, *depth_range, stride=stride, return_valid=True)
+                mask, valid = select_pixels(depth, entropy, keep, *depth_range, stride=stride, return_valid=True,
+                                            p_beyond=getattr(pred, "p_beyond", None))
                 n_valid = int(valid.sum())
                 if not mask.any():
                     raise MonoMapError(f"frame {i}: empty frame, no valid predicted depth within "

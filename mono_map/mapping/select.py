@@ -28,13 +28,19 @@ def valid_pixels(depth: np.ndarray, min_depth: float, max_depth: float, stride: 
     return ok
 
 
+BEYOND_THRESHOLD = 0.5   # a pixel more likely to see no surface within range (sky) than one is never an end point
+
+
 def select_pixels(depth: np.ndarray, entropy: np.ndarray, keep: float, min_depth: float = 1.0,
-                  max_depth: float = 80.0, stride: int = 1, return_valid: bool = False):
+                  max_depth: float = 80.0, stride: int = 1, return_valid: bool = False,
+                  p_beyond: np.ndarray | None = None):
     """H×W bool mask of the kept pixels.
 
     Exactly ``round(keep · n_valid)`` of the n_valid valid pixels are kept: those with the lowest
     entropy (ties broken by raster order, so the result is deterministic). Pixels whose entropy is
-    not finite count as invalid. With return_valid, returns (kept, valid) masks.
+    not finite count as invalid, and so do pixels whose probability of no surface within range
+    (``p_beyond``, H×W) is at least ``BEYOND_THRESHOLD``: sky is never inserted as an occupied end
+    point. With return_valid, returns (kept, valid) masks.
     """
     keep = check_keep(keep)
     depth = np.asarray(depth)
@@ -42,6 +48,11 @@ def select_pixels(depth: np.ndarray, entropy: np.ndarray, keep: float, min_depth
     if depth.shape != entropy.shape or depth.ndim != 2:
         raise MonoMapError(f"entropy: shape {entropy.shape} does not match depth {depth.shape} (H×W expected)")
     valid = valid_pixels(depth, min_depth, max_depth, stride) & np.isfinite(entropy)
+    if p_beyond is not None:
+        p_beyond = np.asarray(p_beyond)
+        if p_beyond.shape != depth.shape:
+            raise MonoMapError(f"p_beyond: shape {p_beyond.shape} does not match depth {depth.shape}")
+        valid &= ~(p_beyond >= BEYOND_THRESHOLD)
     idx = np.flatnonzero(valid)
     n_keep = int(round(keep * len(idx)))
     mask = np.zeros(depth.size, dtype=bool)

@@ -146,7 +146,7 @@ def training_towns(seed: int = 2026, frames_per_town: int = 500, stride: int = 2
     differently randomised renderings of each window (variant v starts v poses later, so poses differ too).
 
     The last third of trajectory 09 is left out: it is the validation town (:func:`validation_town`).
-    Ordered round-robin over trajectories so that any prefix of the list is diverse.
+    Ordered round-robin over trajectories, first variants first, so that any prefix of the list is diverse.
     """
     from mono_map.data.synth.trajectory import trajectory_length
 
@@ -163,12 +163,14 @@ def training_towns(seed: int = 2026, frames_per_town: int = 500, stride: int = 2
             k += 1
         per_traj.append(towns)
     out = []
-    for j in range(max(len(t) for t in per_traj)):
-        for towns in per_traj:
-            if j < len(towns):
-                traj, first, s, f, k, v = towns[j]
-                out.append(TownSpec(name=f"t{traj}_{k}{'ab'[v] if v < 2 else v}", trajectory=traj, first_pose=first,
-                                    pose_stride=s, frames=f, seed=seed * 1000 + int(traj) * 50 + k * 5 + v))
+    for v in range(variants):               # every window once before any second variant
+        for j in range(max(len(t) for t in per_traj)):
+            for towns in per_traj:
+                for traj, first, s, f, k, vv in towns:
+                    if k == j and vv == v:
+                        out.append(TownSpec(name=f"t{traj}_{k}{'ab'[v] if v < 2 else v}", trajectory=traj,
+                                            first_pose=first, pose_stride=s, frames=f,
+                                            seed=seed * 1000 + int(traj) * 50 + k * 5 + v))
     return out
 
 
