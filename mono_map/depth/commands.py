@@ -40,6 +40,10 @@ def register(subparsers) -> None:
                    help="checkpoint path or shipped head name; repeat for several (default: all shipped)")
     p.add_argument("--gt", choices=("lidar", "dense"), default="lidar", help="ground truth: projected LiDAR or dense depth_2")
     p.add_argument("--kitti-object", default=None, help="evaluate on a real KITTI object 'training' folder instead")
+    p.add_argument("--trainset-town", default=None,
+                   help="evaluate on a town of the training cache instead (e.g. val09, or a training town to "
+                        "measure the fit on training frames); --frames index its frames")
+    p.add_argument("--trainset", default="default", help="training cache directory (default ~/.cache/mono-map/trainset)")
     p.add_argument("--cap", type=float, default=80.0, help="maximum ground-truth depth (m)")
     p.add_argument("--garg-crop", action="store_true", help="evaluate inside Garg's crop only")
     p.add_argument("--out", default="outputs/eval_depth", help="output folder (JSON, Markdown, PNG)")
@@ -187,6 +191,15 @@ def run_eval_depth(args) -> int:
         frames = object_frames(args.kitti_object)
         make = lambda: iter(frames)  # noqa: E731
         n, title, where = len(frames), f"Depth evaluation on real KITTI object frames ({args.kitti_object})", "object"
+    elif args.trainset_town:
+        from mono_map.depth.evaluate import open_town, trainset_frames
+
+        town = open_town(args.trainset, args.trainset_town)
+        frames = trainset_frames(town, parse_frames(args.frames, town.frames), args.gt)
+        make = lambda: iter(frames)  # noqa: E731
+        n, where = len(frames), f"trainset_{args.trainset_town}"
+        title = (f"Depth evaluation on training-cache town {args.trainset_town} (frames {args.frames}, 192×634, "
+                 f"ground truth: {args.gt}, cap {args.cap:g} m)")
     else:
         from mono_map.data.kitti import open_sequence
 

@@ -38,6 +38,33 @@ def object_frames(root: str | Path) -> list[tuple[str, np.ndarray, np.ndarray]]:
     return out
 
 
+def open_town(root: str, town: str):
+    """A town of the training cache (``root`` "default" = ``trainset.default_root()``) for reading."""
+    from mono_map.data.synth.trainset import default_root, open_trainset
+    from mono_map.errors import MonoMapError
+
+    base = default_root() if root == "default" else Path(root).expanduser()
+    towns = open_trainset(base, [town])
+    if not towns:
+        raise MonoMapError(f"--trainset-town: no town {town!r} under {base}/towns")
+    return towns[0]
+
+
+def trainset_frames(town, indices, gt: str = "lidar") -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """Frames of a training-cache town -> [(name, RGB 192×634, ground truth metres, 0 = none)]; sky has no value."""
+    from mono_map.data.synth.trainset import decode_depth
+    from mono_map.errors import MonoMapError
+
+    done = set(town.done_frames().tolist())
+    out = []
+    for i in indices:
+        if i not in done:
+            raise MonoMapError(f"--frames: frame {i} of town {town.path.name} is not rendered yet")
+        d, _ = decode_depth(town.lidar[i] if gt == "lidar" else town.dense[i])
+        out.append((f"{town.path.name}_{i:04d}", np.asarray(town.image[i]), d))
+    return out
+
+
 def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray]], n_frames: int | None = None,
                    cap: float = 80.0, garg_crop: bool = False, time_frames: int = 10, desc: str = "") -> dict:
     """Run ``predictor`` over (name, image, gt depth) frames and collect every statistic."""
