@@ -15,7 +15,7 @@ from mono_map.eval.depth_metrics import LABELS, METRICS, image_errors, mean_erro
 from mono_map.eval.hypotheses import oracle_errors
 from mono_map.eval.sparsification import sparsification
 
-MS = (1, 3, 5)
+MS = (1, 3, 5, 10)
 
 
 def object_frames(root: str | Path) -> list[tuple[str, np.ndarray, np.ndarray]]:
@@ -103,6 +103,14 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
                 if low:
                     modes = F.interpolate(modes, size=(H, W), mode="nearest")
                 modes = F.interpolate(modes[..., :fh, :fw], size=(h, w), mode="nearest")[0].numpy()
+            elif r_log.get("modes") is not None:   # MHL: its M hypotheses, one code path with the modes
+                (H, W), (fh, fw), (h, w), low = geom
+                modes = r_log["modes"][:, :max(MS)]
+                if low:
+                    modes = F.interpolate(modes, size=(H, W), mode="nearest")
+                modes = F.interpolate(modes[..., :fh, :fw], size=(h, w), mode="nearest")[0].numpy()
+                if len(modes) < max(MS):     # fewer hypotheses than asked: repeat the last
+                    modes = np.concatenate([modes, np.repeat(modes[-1:], max(MS) - len(modes), 0)])
             else:
                 modes = maps[None, 0].repeat(max(MS), 0)
         m = valid_mask(gt, cap, garg_crop=garg_crop)

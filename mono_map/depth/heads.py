@@ -7,6 +7,8 @@ Heads (by name):
   gaussian          mean and log-variance of log-depth (Kendall & Gal)
   binary-dropout, gaussian-dropout   the same with dropout in the decoder, MC-sampled at test time
   l2, berhu         regression of log-depth (no uncertainty: their entropy is constant 0)
+  mhl               M regressed log-depth hypotheses, relaxed winner-takes-all L2 (Rupprecht et al. 2017;
+                    the paper's Table III baseline); depth = their log-mean, "entropy" = their log-depth spread
 
 With ``beyond=True`` (model v2) every head also says how likely a pixel has **no surface within
 the bin range** (sky, or farther than ``max_depth``): binary through "none of the K bins fires"
@@ -33,16 +35,16 @@ from mono_map.errors import MonoMapError
 @dataclass(frozen=True)
 class HeadSpec:
     name: str
-    kind: str          # "bins" (K logits), "ordinal" (K-1 logits), "gaussian" (2 maps), "regression" (1 map)
+    kind: str          # "bins" (K logits), "ordinal" (K-1), "gaussian" (2 maps), "regression" (1), "hypotheses" (M)
     dropout: bool = False
 
     @property
     def base(self) -> str:
         return self.name.replace("-dropout", "")
 
-    def out_channels(self, bins: DepthBins, beyond: bool = False) -> int:
+    def out_channels(self, bins: DepthBins, beyond: bool = False, hypotheses: int = 1) -> int:
         k = bins.num_bins
-        n = {"bins": k, "ordinal": k - 1, "gaussian": 2, "regression": 1}[self.kind]
+        n = {"bins": k, "ordinal": k - 1, "gaussian": 2, "regression": 1, "hypotheses": hypotheses}[self.kind]
         if beyond and self.base != "binary":   # binary says "beyond" with all K sigmoids off
             n += 1
         return n
@@ -57,6 +59,7 @@ HEADS: dict[str, HeadSpec] = {
     "gaussian-dropout": HeadSpec("gaussian-dropout", "gaussian", dropout=True),
     "l2": HeadSpec("l2", "regression"),
     "berhu": HeadSpec("berhu", "regression"),
+    "mhl": HeadSpec("mhl", "hypotheses"),
 }
 
 
@@ -80,6 +83,11 @@ def regression_log_depth(output: torch.Tensor, bins: DepthBins) -> torch.Tensor:
     return output[:, 0] + log_mid(bins)
 
 
+def hypotheses_log_depth(output: torch.Tensor, bins: DepthBins) -> torch.Tensor:
+    """(B,M,H,W) raw MHL output -> (B,M,H,W) log-depth hypotheses."""
+    return output + log_mid(bins)
+
+
 def split_beyond(head: HeadSpec, output: torch.Tensor, bins: DepthBins, beyond: bool):
     """(in-range outputs, beyond-range logit (B,H,W) or None) of a raw (B,C,H,W) output.
 
@@ -101,7 +109,7 @@ def split_beyond(head: HeadSpec, output: torch.Tensor, bins: DepthBins, beyond: 
 def decode(head: HeadSpec | str, outputs: torch.Tensor, bins: DepthBins, space: str = "log",
            with_probs: bool = False, beyond: bool = False) -> dict[str, torch.Tensor]:
     """Raw outputs -> depth (B,H,W) m, entropy (B,H,W) nats, argmax (B,H,W) m, p_beyond (B,H,W),
-    probs (B,K,H,W) or None.
+    probs (B,K,H,W) or None, and for MHL its hypotheses ``modes`` (B,M,H,W) m in output order.
 
     ``outputs`` is (B,C,H,W), or (S,B,C,H,W) for S Monte-Carlo dropout samples, which are combined:
     bin heads average their probabilities; Gaussian heads use the mixture's mean and total variance.
@@ -148,4 +156,11 @@ def decode(head: HeadSpec | str, outputs: torch.Tensor, bins: DepthBins, space: 
         depth = torch.exp(mc_mean(regression_log_depth(x, bins))).clamp(bins.min_depth, bins.max_depth)
         return {"depth": depth, "entropy": torch.zeros_like(depth), "argmax": depth, "p_beyond": p_beyond,
                 "probs": None}
+    if head.kind == "hypotheses":
+        hyp = mc_mean(hypotheses_log_depth(x, bins))
+        lo, hi = math.log(bins.min_depth), math.log(bins.max_depth)
+        depth = torch.exp(hyp.mean(1)).clamp(bins.min_depth, bins.max_depth)
+        spread = hyp.std(1, unbiased=False) if hyp.shape[1] > 1 else torch.zeros_like(depth)
+        return {"depth": depth, "entropy": spread, "argmax": depth, "p_beyond": p_beyond, "probs": None,
+                "modes": torch.exp(hyp.clamp(lo, hi))}
     raise MonoMapError(f"head: cannot decode {head.name!r}")

@@ -5,6 +5,7 @@
   ordinal   BCE of the threshold classifiers P(y > k)
   gaussian  Gaussian NLL of log-depth
   l2, berhu regression of log-depth
+  mhl       relaxed winner-takes-all L2 of M log-depth hypotheses: (1−ε)·min_m r_m² + ε/(M−1)·Σ_{others} r_m²
 Targets are depth in metres per pixel: 0 (or <= 0) = no value; +inf or anything beyond ``max_depth`` =
 **no surface within range** (sky). With ``beyond=True`` such pixels train towards "beyond": binary
 towards all K labels 0, softmax towards its extra class, ordinal towards every threshold exceeded,
@@ -19,7 +20,8 @@ import torch
 import torch.nn.functional as F
 
 from mono_map.depth.bins import DepthBins
-from mono_map.depth.heads import HeadSpec, gaussian_params, get_head, regression_log_depth, split_beyond
+from mono_map.depth.heads import (HeadSpec, gaussian_params, get_head, hypotheses_log_depth, regression_log_depth,
+                                  split_beyond)
 from mono_map.errors import MonoMapError
 
 
@@ -51,8 +53,18 @@ def masked_mean(per_pixel: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (per_pixel * mask).sum() / n
 
 
+def relaxed_wta(sq: torch.Tensor, epsilon: float) -> torch.Tensor:
+    """(B,M,H,W) squared errors of M hypotheses -> (B,H,W) relaxed winner-takes-all loss (Rupprecht et al.):
+    weight 1−ε on the best hypothesis, ε/(M−1) on each other; ε = 0 trains only the winner."""
+    m = sq.shape[1]
+    if m == 1:
+        return sq[:, 0]
+    best = sq.min(1).values
+    return (1 - epsilon) * best + epsilon / (m - 1) * (sq.sum(1) - best)
+
+
 def head_loss(head: HeadSpec | str, output: torch.Tensor, depth: torch.Tensor, bins: DepthBins,
-              beyond: bool = False) -> torch.Tensor:
+              beyond: bool = False, wta_epsilon: float = 0.05) -> torch.Tensor:
     """Scalar training loss of a head's raw network output (B,C,H,W) against target depth (B,H,W) metres."""
     head = get_head(head) if isinstance(head, str) else head
     mask = valid_mask(depth, bins)
@@ -97,4 +109,7 @@ def head_loss(head: HeadSpec | str, output: torch.Tensor, depth: torch.Tensor, b
         c = (0.2 * (r * near).max()).detach().clamp_min(1e-6)
         b = torch.where(r <= c, r, (r * r + c * c) / (2 * c))
         return masked_mean(b, near) + extra
+    if base == "mhl":
+        sq = (hypotheses_log_depth(x, bins) - safe.log().unsqueeze(1)) ** 2
+        return masked_mean(relaxed_wta(sq, wta_epsilon), near) + extra
     raise MonoMapError(f"head: no loss for {head.name!r}")

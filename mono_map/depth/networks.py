@@ -40,6 +40,8 @@ class ModelConfig:
     input_height: int = 192
     input_width: int = 640
     beyond: bool = False                     # trained with beyond-range (sky) targets: heads say p(no surface)
+    hypotheses: int = 5                      # M, only used by the mhl head
+    wta_epsilon: float = 0.05                # relaxed winner-takes-all ε, only used by the mhl head
 
     @property
     def bins(self) -> DepthBins:
@@ -66,6 +68,8 @@ class ModelConfig:
             raise MonoMapError(f"{source}: block must be 'basic' or 'bottleneck', got {self.block!r}")
         if len(self.layers) != 4 or len(self.widths) != 4 or len(self.decoder_widths) != 3:
             raise MonoMapError(f"{source}: need 4 layers, 4 widths and 3 decoder_widths")
+        if self.hypotheses < 1 or not 0 <= self.wta_epsilon < 1:
+            raise MonoMapError(f"{source}: need hypotheses >= 1 and 0 <= wta_epsilon < 1")
         if self.input_height % 32 or self.input_width % 32:
             raise MonoMapError(f"{source}: input size {self.input_height}x{self.input_width} must be multiples of 32")
         self.bins  # validates the range
@@ -210,7 +214,7 @@ class DepthNet(nn.Module):
         p = cfg.dropout if self.head.dropout else 0.0
         self.tail = nn.Sequential(nn.Dropout2d(p) if p else nn.Identity(), conv_bn_relu(d4, d4),
                                   nn.Dropout2d(p) if p else nn.Identity(),
-                                  nn.Conv2d(d4, self.head.out_channels(bins, cfg.beyond), 3, 1, 1))
+                                  nn.Conv2d(d4, self.head.out_channels(bins, cfg.beyond, cfg.hypotheses), 3, 1, 1))
         self.register_buffer("mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1), persistent=False)
 

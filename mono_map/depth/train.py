@@ -476,7 +476,7 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
         if t.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
         out, tgt = outputs_at_targets(model_ddp(x, upsample=False), y)
-        loss = head_loss(model.head, out, tgt, mcfg.bins, beyond=mcfg.beyond)
+        loss = head_loss(model.head, out, tgt, mcfg.bins, beyond=mcfg.beyond, wta_epsilon=mcfg.wta_epsilon)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -1,0 +1,74 @@
+"""MHL baseline (relaxed winner-takes-all over M hypotheses) and the bin-count ablation's plumbing."""
+
+import numpy as np
+import torch
+
+from mono_map.depth.bins import DepthBins
+from mono_map.depth.distribution import top_modes
+from mono_map.depth.heads import decode, get_head
+from mono_map.depth.inference import DepthPredictor, load_checkpoint, save_checkpoint
+from mono_map.depth.losses import head_loss, relaxed_wta
+from mono_map.depth.networks import DepthNet, named_config
+from mono_map.eval.hypotheses import oracle_errors
+
+BINS = DepthBins(16, 1.0, 80.0)
+TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8), input_height=64,
+            input_width=128)
+
+
+def test_relaxed_wta_with_zero_epsilon_trains_only_the_best_hypothesis():
+    out = torch.tensor([[[[0.0]], [[1.0]], [[3.0]]]], requires_grad=True)     # (1, M=3, 1, 1) log-depth offsets
+    target = torch.exp(torch.tensor(head_log_mid() + 0.9)).view(1, 1, 1)        # closest to hypothesis 1
+    head_loss(get_head("mhl"), out, target, BINS, wta_epsilon=0.0).backward()
+    g = out.grad.view(-1)
+    assert g[1] != 0 and g[0] == 0 and g[2] == 0
+    out.grad = None
+    head_loss(get_head("mhl"), out, target, BINS, wta_epsilon=0.1).backward()
+    assert (out.grad.view(-1) != 0).all()
+    sq = torch.tensor([[[[4.0]], [[1.0]], [[9.0]]]])
+    assert abs(float(relaxed_wta(sq, 0.1)) - (0.9 * 1.0 + 0.1 / 2 * 13.0)) < 1e-6
+
+
+def head_log_mid():
+    from mono_map.depth.heads import log_mid
+
+    return log_mid(BINS)
+
+
+def test_mhl_loss_decreases_on_a_single_image():
+    torch.manual_seed(0)
+    cfg = named_config("small", head="mhl", num_bins=16, hypotheses=3, **TINY)
+    net = DepthNet(cfg).train()
+    x = torch.rand(1, 3, 64, 128)
+    y = torch.where(torch.rand(1, 64, 128) < 0.3, torch.rand(1, 64, 128) * 40 + 2, torch.zeros(1, 64, 128))
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(40):
+        loss = head_loss(net.head, net(x), y, cfg.bins, wta_epsilon=cfg.wta_epsilon)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss))
+    assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:5])
+
+
+def test_mhl_hypotheses_come_in_the_format_of_binary_modes():
+    out = torch.randn(2, 5, 4, 6)
+    r = decode("mhl", out, BINS)
+    probs = torch.softmax(torch.randn(2, BINS.num_bins, 4, 6), 1)
+    modes, _ = top_modes(probs, BINS, 5)
+    assert r["modes"].shape == modes.shape == (2, 5, 4, 6)
+    assert (r["modes"] >= BINS.min_depth).all() and (r["modes"] <= BINS.max_depth).all()
+    gt = np.full(24, 10.0)
+    e = oracle_errors(gt, r["modes"][0].reshape(5, -1).numpy(), (1, 3, 5))
+    assert e[5]["abs_rel"] <= e[3]["abs_rel"] <= e[1]["abs_rel"]       # more hypotheses never hurt the oracle
+
+
+def test_a_32_bin_model_saves_loads_and_predicts_through_the_same_code(tmp_path):
+    cfg = named_config("small", head="binary", num_bins=32, beyond=True, **TINY)
+    net = DepthNet(cfg).eval()
+    save_checkpoint(tmp_path / "k32.pt", net)
+    model, payload = load_checkpoint(tmp_path / "k32.pt")
+    assert model.cfg.num_bins == 32 and payload["bins"]["num_bins"] == 32
+    p = DepthPredictor.load(tmp_path / "k32.pt").predict(np.zeros((60, 120, 3), np.uint8), with_probs=True)
+    assert p.probs.shape == (32, 60, 120) and p.depth.shape == (60, 120) and p.p_beyond.shape == (60, 120)
