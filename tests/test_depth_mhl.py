@@ -48,7 +48,7 @@ def test_mhl_loss_decreases_on_a_single_image():
         opt.zero_grad()
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(loss.item())
     assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:5])
 
 

@@ -34,7 +34,7 @@ def _cfg(tmp_path, steps=4, **train_kw):
 
 def test_shipped_configs_parse_and_exclude_sequence_00():
     root = Path(__file__).resolve().parents[1] / "mono_map" / "depth" / "configs"
-    files = sorted(root.glob("*.toml"))
+    files = sorted(root.rglob("*.toml"))
     assert {"binary.toml", "softmax.toml", "gaussian.toml"} <= {f.name for f in files}
     for f in files:
         cfg = load_run_config(f)
