@@ -9,9 +9,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-# Not a second definition: the name mapping/build.py still imports (use DepthBins; then delete this line).
-from mono_map.depth.bins import DepthBins as BinConfig  # noqa: F401
-
 
 @dataclass(frozen=True)
 class OctoMapConfig:
