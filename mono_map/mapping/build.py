@@ -216,7 +216,7 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
         "clamp_min": cfg.clamp_min, "clamp_max": cfg.clamp_max, "max_range": cfg.max_range,
         "depth_range": list(depth_range) if source == "mono" else None,
         "points_valid": int(points_valid), "points_kept": int(points_kept),
-        "points_inserted": int(points_kept), "rays_cast": int(rays_cast),
+        "rays_cast": int(rays_cast),
         "leaf_count": final["leaf_count"], "tree_nodes": final["tree_nodes"],
         "memory_bytes": final["memory_bytes"], "memory_mb": final["memory_mb"],
         "wall_s": wall, "frames_per_s": len(frames) / wall if wall > 0 else 0.0,
