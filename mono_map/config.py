@@ -1,17 +1,13 @@
-"""Small configuration dataclasses shared across the pipeline (no global state)."""
+"""Small configuration dataclasses shared across the pipeline (no global state).
+
+One config per domain, each defined once: depth bins are ``mono_map.depth.bins.DepthBins``, the
+network ``mono_map.depth.networks.ModelConfig``, training ``mono_map.depth.train``'s dataclasses,
+OctoMap ``OctoMapConfig`` here.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-
-
-@dataclass(frozen=True)
-class BinConfig:
-    """Log-spaced depth bins (paper Eq. 1): K intervals over [min_depth, max_depth) metres."""
-
-    num_bins: int = 64
-    min_depth: float = 1.0
-    max_depth: float = 80.0
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ T = TypeVar("T")
 def progress(items: Iterable[T], total: int | None = None, desc: str = "", unit: str = "frame") -> Iterator[T]:
     """Wrap ``items`` in a progress bar showing rate (``unit``/s) and ETA.
 
-    Disabled automatically when stderr is not a terminal and ``MONO_MAP_PROGRESS=0``.
+    Disabled by ``MONO_MAP_PROGRESS=0``; when stderr is not a terminal it redraws at most once a second.
     """
     import os
 

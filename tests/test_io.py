@@ -2,6 +2,9 @@
 
 import os
 import stat
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -28,10 +31,18 @@ def test_failed_write_keeps_the_previous_file(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["stats.json"]
 
 
-def test_written_file_mode_follows_umask(tmp_path):
-    old = os.umask(0o022)
-    try:
-        write_json_atomic(tmp_path / "a.json", {"x": 1})
-    finally:
-        os.umask(old)
-    assert stat.S_IMODE((tmp_path / "a.json").stat().st_mode) == 0o644
+def test_written_file_mode_is_what_a_plain_open_gives(tmp_path):
+    write_json_atomic(tmp_path / "a.json", {"x": 1})
+    (tmp_path / "plain.json").write_text("{}")
+    assert stat.S_IMODE((tmp_path / "a.json").stat().st_mode) == stat.S_IMODE((tmp_path / "plain.json").stat().st_mode)
+
+
+def test_written_file_mode_follows_the_umask_of_the_process(tmp_path):
+    """io reads the umask once, at import: a process started with umask 002 writes 0664 files
+    (neither mkstemp's 0600 nor the usual 0644)."""
+    target = tmp_path / "a.json"
+    code = ("import os, sys; os.umask(0o002); from mono_map.io import write_json_atomic; "
+            "write_json_atomic(sys.argv[1], {'x': 1})")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    subprocess.run([sys.executable, "-c", code, str(target)], check=True, env=env)
+    assert stat.S_IMODE(target.stat().st_mode) == 0o664

@@ -249,7 +249,7 @@ def test_cli_table_and_sweep(tiny_root, tmp_path, capsys):
 
 def test_topdown_picture_has_no_gaps_between_adjacent_cells():
     """A contiguous row of 0.2 m cells fills every pixel of its picture row (no moire gaps)."""
-    from mono_map.viz.topdown import height_image, picture_extent
+    from mono_map.viz.plots import height_image, picture_extent
 
     res = 0.2
     k = np.arange(-300, 300)

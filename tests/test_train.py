@@ -1,7 +1,6 @@
 """Training loop: config validation, resume, distributed data parallel with 2 CPU processes."""
 
 import socket
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import types
-from collections import defaultdict
 
 import numpy as np
 import pytest
 
 from mono_map.cli import main as cli_main
 from mono_map.errors import MonoMapError
-from mono_map.viz.rerun_stream import (RerunMapLogger, cell_indices, map_cells_at, pack, read_recording, unpack,
-                                       voxel_cells)
+from mono_map.viz.codec import cell_indices, pack, unpack
+from mono_map.viz.rerun_stream import RerunMapLogger
+from rrd_readback import latest_map_rows, map_cells_at, read_recording, voxel_cells
 
 RES = 0.2
 H, W = 24, 80
@@ -259,3 +259,75 @@ def test_close_during_an_exception_discards_the_recording(tmp_path):
         finally:
             logger.close()
     assert not rrd.exists() and not list(tmp_path.iterdir())
+
+
+# ----------------------------------------------------------------------------- colour by probability
+
+
+def test_logger_colours_cells_by_occupancy_probability(tmp_path):
+    """colour="probability": every drawn cell carries its latest probability, also when only its
+    probability changed (its block is re-logged then); free cells in the update are ignored."""
+    from mono_map.viz.codec import PROBABILITY_RANGE
+
+    rng = np.random.default_rng(11)
+    prob: dict = {}
+    rrd = tmp_path / "prob.rrd"
+    logger = RerunMapLogger(rrd=rrd, resolution=RES, block_cells=16, colour="probability")
+    expected = []
+    for i in range(4):
+        if i == 2:   # only probabilities of occupied cells change: no cell appears or disappears
+            cells = sorted(c for c, p in prob.items() if p >= 0.5)[:50]
+            new = {c: float(rng.uniform(0.5, 1.0)) for c in cells}
+        else:
+            cells = {tuple(c) for c in rng.integers([-30, -5, 0], [30, 5, 60], (300, 3)).tolist()}
+            new = {c: float(rng.uniform(0.0, 1.0)) for c in cells}
+        before = {c for c, p in prob.items() if p >= 0.5}
+        prob.update(new)
+        after = {c for c, p in prob.items() if p >= 0.5}
+        u = make_update(i, after - before, before - after, rng)
+        u.updated_cells = centres(new)
+        u.updated_probability = np.array([new[c] for c in sorted(new)], dtype=np.float32)
+        logger(u)
+        expected.append({c: np.float32(prob[c]) for c in after})
+    logger.close()
+
+    rows = read_recording(rrd)
+    for i, want in enumerate(expected):
+        shown = {}
+        for row in latest_map_rows(rows, i).values():
+            assert row["VoxelGridMap:value_range"][0] == list(PROBABILITY_RANGE)
+            cells = np.asarray(row["VoxelGridMap:voxel_indices"]).reshape(-1, 3) + np.round(
+                np.asarray(row["VoxelGridMap:translation"][0]) / RES).astype(np.int64)
+            shown.update(zip(map(tuple, cells.tolist()), row["VoxelGridMap:values"]))
+        assert set(shown) == set(want), f"cells differ after frame {i}"
+        assert all(np.isclose(shown[c], want[c]) for c in want), f"probabilities differ after frame {i}"
+    # frame 2 changed no occupancy, yet re-logged the blocks of the cells whose probability changed
+    assert any(f == 2 for p, es in rows.items() if p.startswith("/world/map/") for f, _ in es)
+
+
+def test_probability_colours_match_the_point_style(tmp_path):
+    from mono_map.viz.codec import probability_colours
+
+    rrd = tmp_path / "pts.rrd"
+    logger = RerunMapLogger(rrd=rrd, resolution=RES, cells="points", colour="probability")
+    u = make_update(0, {(1, 2, 3), (4, 5, 6)}, set(), np.random.default_rng(12))
+    u.updated_cells, u.updated_probability = centres({(1, 2, 3), (4, 5, 6)}), np.array([0.55, 0.95])
+    logger(u)
+    logger.close()
+    (row,) = [e for p, es in read_recording(rrd).items() if p.startswith("/world/map/") for _, e in es]
+    got = np.array(row["Points3D:colors"], dtype=np.uint32)
+    want = probability_colours(np.array([0.55, 0.95]))
+    packed = (want[:, 0].astype(np.uint32) << 24) | (want[:, 1].astype(np.uint32) << 16) | (
+        want[:, 2].astype(np.uint32) << 8) | 255
+    assert np.array_equal(got, packed)
+    assert not np.array_equal(want[0], want[1])  # the scale tells 0.55 from 0.95
+
+
+def test_probability_colour_needs_probabilities(tmp_path):
+    logger = RerunMapLogger(rrd=tmp_path / "p.rrd", resolution=RES, colour="probability")
+    with pytest.raises(MonoMapError, match="updated_probability"):
+        logger(make_update(0, {(1, 2, 3)}, set(), np.random.default_rng(13)))
+    logger.abort()
+    with pytest.raises(MonoMapError, match="colour"):
+        RerunMapLogger(rrd=tmp_path / "q.rrd", colour="rainbow")
+    assert not list(tmp_path.iterdir())

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mono_map.viz.rerun_stream import (RerunMapLogger, cell_indices, map_cells_at, occupied_cells_from_bt,
-                                       read_recording)
+from mono_map.viz.codec import cell_indices, occupied_cells_from_bt
+from mono_map.viz.rerun_stream import RerunMapLogger
+from rrd_readback import map_cells_at, read_recording
 
 
 def test_short_build_writes_recording_with_expected_paths_and_frames(tiny_root, tmp_path):

@@ -65,10 +65,11 @@ def preview(seq_dir: Path, index: int, out: Path) -> None:
     pts_cam = transform_points(ds.calib.T_cam2_velo, velo[:, :3])
     ldepth = lidar_depth_image(pts_cam, K, img.shape[0], img.shape[1])
 
+    from mono_map.viz.codec import colourise
+
     def colorise(d):
         # log depth, 2 m (red) ... 80 m (blue)
-        v = np.clip(1 - np.log(np.maximum(d, 1e-3) / 2.0) / np.log(40.0), 0, 1)
-        c = cv2.applyColorMap((v * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
+        c = colourise(1 - np.log(np.maximum(d, 1e-3) / 2.0) / np.log(40.0), 0.0, 1.0, "turbo")
         c[d <= 0] = 0
         return c
 

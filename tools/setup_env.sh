@@ -1,8 +1,11 @@
 #!/usr/bin/env bash
 # Set up everything mono-map needs on a fresh machine; idempotent and quick when done already.
 #   - Debian packages (when root): libusb-1.0-0 (open3d needs it), octomap-tools (OctoMap's C++ tools)
-#   - a virtualenv (.venv, or $MONO_MAP_VENV) with the CPU build of torch 2.13.0 (never a CUDA build)
-#     and mono-map installed in editable mode with its test extras.
+#   - a virtualenv (.venv, or $MONO_MAP_VENV) with torch 2.13.0 and mono-map installed in editable mode
+#     with its test extras. torch comes from whatever index pip is configured with: a machine whose pip
+#     finds a CPU wheel gets that (2.13.0+cpu on the project's machines); from plain PyPI on Linux x86-64
+#     it is the default CUDA build, which is what a machine with an NVIDIA GPU wants. For a CPU-only
+#     build from PyPI, run with PIP_INDEX_URL=https://download.pytorch.org/whl/cpu.
 # Source it or run it; afterwards "$VENV/bin/mono-map" works.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -33,7 +36,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "setup: installing Python packages into $VENV (first time takes a few minutes; log: $log)" >&2
   if ! {
     "$VENV/bin/python" -m pip install --upgrade pip &&
-    # The CPU build first: with it installed, "torch>=2.1" in pyproject.toml pulls nothing more.
+    # torch first, pinned: with it installed, "torch>=2.1" in pyproject.toml pulls nothing more.
     "$VENV/bin/python" -m pip install "torch==2.13.0" &&
     "$VENV/bin/python" -m pip install -e "$REPO[test]"
   } >"$log" 2>&1; then

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mono_map.config import BinConfig
 from mono_map.errors import MonoMapError
 
 
@@ -29,10 +28,6 @@ class DepthBins:
             raise MonoMapError(f"bins: num_bins must be >= 2, got {self.num_bins}")
         if not (0 < self.min_depth < self.max_depth):
             raise MonoMapError(f"bins: need 0 < min_depth < max_depth, got {self.min_depth}, {self.max_depth}")
-
-    @classmethod
-    def from_config(cls, cfg: BinConfig) -> "DepthBins":
-        return cls(cfg.num_bins, cfg.min_depth, cfg.max_depth)
 
     @property
     def log_width(self) -> float:

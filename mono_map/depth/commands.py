@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 SHIPPED_HEADS = ("binary", "softmax", "gaussian", "ordinal")
@@ -100,15 +99,6 @@ def run_train(args) -> int:
     return 0
 
 
-def colourise(values, vmin: float, vmax: float, cmap: str = "magma"):
-    """H×W float -> H×W×3 uint8 RGB (matplotlib colour map)."""
-    import numpy as np
-    from matplotlib import colormaps
-
-    x = np.clip((np.asarray(values, np.float64) - vmin) / max(vmax - vmin, 1e-9), 0, 1)
-    return (colormaps[cmap](x)[..., :3] * 255).astype(np.uint8)
-
-
 def run_predict(args) -> int:
     import cv2
     import numpy as np
@@ -118,6 +108,7 @@ def run_predict(args) -> int:
     from mono_map.errors import MonoMapError
     from mono_map.io import atomic_path
     from mono_map.progress import progress
+    from mono_map.viz.codec import colourise
 
     pred = DepthPredictor.load(args.model, space=args.space)
     out = Path(args.out)
@@ -176,7 +167,8 @@ def _models(args) -> list[str]:
 def run_eval_depth(args) -> int:
     import torch
 
-    from mono_map.depth.evaluate import evaluate_model, markdown_report, object_frames, plot_curves, plot_hypotheses
+    from mono_map.depth.evaluate import evaluate_model, markdown_report, object_frames
+    from mono_map.viz.plots import plot_hypotheses, plot_sparsification
     from mono_map.depth.inference import DepthPredictor
     from mono_map.errors import MonoMapError
     from mono_map.io import write_json_atomic, write_text_atomic
@@ -223,7 +215,7 @@ def run_eval_depth(args) -> int:
                                                                               if k != "func"}, "results": results})
     md = markdown_report(results, title)
     write_text_atomic(out / f"depth_{where}.md", md)
-    plot_curves(results, out / f"sparsification_{where}.png")
+    plot_sparsification(results, out / f"sparsification_{where}.png")
     plot_hypotheses(results, out / f"hypotheses_{where}.png")
     print(md)
     print(f"wrote {out}/depth_{where}.(json|md), sparsification_{where}.png, hypotheses_{where}.png")

@@ -8,7 +8,7 @@ head's score maps to the input resolution (paper Fig. 2).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 
 import torch
 import torch.nn as nn

@@ -16,7 +16,8 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from mono_map.config import BinConfig, OctoMapConfig
+from mono_map.config import OctoMapConfig
+from mono_map.depth.bins import DepthBins
 from mono_map.errors import MonoMapError
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.points import camera_origin, pixels_to_world
@@ -120,7 +121,7 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
     "lidar-fov" (``keep`` and the predictor are ignored). predictor: anything with
     ``predict(image) -> DepthPrediction`` or ``predict_frame(seq, i, image)``; if None,
     ``load_predictor(model)`` (None → the shipped checkpoint). depth_range: valid predicted
-    depths (metres), default the predictor's bin range (else BinConfig's 1–80 m).
+    depths (metres), default the predictor's bin range (else DepthBins' 1–80 m).
     observers: callables ``obs(FrameUpdate)``, closed (``close()``) at the end, also on error.
     Leaf count / memory are measured every ``stats_every`` frames (a tree traversal) and carried
     in between. Raises MonoMapError on bad input; nothing is written here.
@@ -139,7 +140,7 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
     if source == "mono" and predictor is None:
         predictor = load_predictor(model)
     if depth_range is None:
-        bins = getattr(predictor, "bins", None) or BinConfig()
+        bins = getattr(predictor, "bins", None) or DepthBins()
         depth_range = (float(bins.min_depth), float(bins.max_depth))
     integrator = MapIntegrator(cfg, method=method)
     K = np.asarray(seq.calib.K2, dtype=np.float64)
@@ -216,7 +217,7 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
         "clamp_min": cfg.clamp_min, "clamp_max": cfg.clamp_max, "max_range": cfg.max_range,
         "depth_range": list(depth_range) if source == "mono" else None,
         "points_valid": int(points_valid), "points_kept": int(points_kept),
-        "points_inserted": int(points_kept), "rays_cast": int(rays_cast),
+        "rays_cast": int(rays_cast),
         "leaf_count": final["leaf_count"], "tree_nodes": final["tree_nodes"],
         "memory_bytes": final["memory_bytes"], "memory_mb": final["memory_mb"],
         "wall_s": wall, "frames_per_s": len(frames) / wall if wall > 0 else 0.0,

@@ -89,8 +89,9 @@ def run_table(args) -> int:
     write_text_atomic(out_dir / f"{stem}.md", md)
     write_json_atomic(out_dir / f"{stem}.json", {"sequence": args.seq, "frames": [frames.start, frames.stop], "reference": reference,
                                                   "resolution": cfg.resolution, "model": args.model, "rows": rows})
+    from mono_map.viz.plots import plot_sweep, render_topdown
+
     plot_sweep(rows, out_dir / f"{stem}_sweep.png", "LiDAR-FOV" if reference == "lidar-fov" else "LiDAR")
-    from mono_map.viz.topdown import render_topdown
 
     pics = [("LiDAR-FOV", trees["LiDAR-FOV"]), ("mono (keep 1.0)", trees["mono (keep 1.0)"]),
             ("mono keep 0.8", trees["mono keep 0.8"])]
@@ -114,33 +115,3 @@ def table_markdown(rows: list[dict], seq: str, desc: str, cfg, model, reference:
                      f"{100 * r['f1']:.1f} | {r['memory_mb']:.1f} | {r['leaf_count']:,} |")
     return "\n".join(lines) + "\n"
 
-
-def plot_sweep(rows: list[dict], path: Path, reference_label: str = "LiDAR-FOV") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from mono_map.io import atomic_path
-
-    mono = sorted((r for r in rows if r["source"] == "mono"), key=lambda r: r["keep"])
-    ref = next(r for r in rows if r["source"] == "lidar-fov")
-    keeps = [r["keep"] for r in mono]
-    fig, ax1 = plt.subplots(figsize=(6, 4.6))
-    ax1.plot(keeps, [100 * r["accuracy"] for r in mono], "o-", color="tab:blue", label="accuracy")
-    ax1.plot(keeps, [100 * r["accuracy_covered"] for r in mono], "s--", color="tab:cyan", label="accuracy (covered cells)")
-    ax1.set_xlabel("keep (fraction of lowest-entropy pixels)")
-    ax1.set_ylabel(f"accuracy vs {reference_label} map (%)", color="tab:blue")
-    ax2 = ax1.twinx()
-    ax2.plot(keeps, [r["memory_mb"] for r in mono], "^-", color="tab:red", label="memory")
-    ax2.axhline(ref["memory_mb"], color="tab:red", ls=":", lw=1, label="LiDAR-FOV memory")
-    ax2.set_ylabel("memory (MB, OctoMap memoryUsage)", color="tab:red")
-    h1, l1 = ax1.get_legend_handles_labels()
-    h2, l2 = ax2.get_legend_handles_labels()
-    ax1.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2,
-               frameon=False)  # below the axes: the curves use the whole plot
-    ax1.grid(alpha=0.3)
-    fig.tight_layout()
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=130)
-    plt.close(fig)

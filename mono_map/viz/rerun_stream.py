@@ -2,7 +2,8 @@
 
 ``RerunMapLogger`` is a ``build_map`` observer: call it with each ``FrameUpdate`` (see
 ``mono_map.mapping.build``), then ``close()``. It only reads the update's attributes, so any
-object with the same fields works.
+object with the same fields works. ``log_bt_map`` logs a finished ``.bt``. The array work (cell
+keys, colours, image encoding) is in ``mono_map.viz.codec``; the layout in ``mono_map.viz.blueprint``.
 
 What is logged (entity paths; all temporal data on the ``frame`` sequence timeline and on a
 ``time`` duration timeline taken from the sequence timestamps, seconds):
@@ -28,7 +29,7 @@ What is logged (entity paths; all temporal data on the ``frame`` sequence timeli
 
 The map is sent incrementally, per spatial block
 -----------------------------------------------
-Space is cut into cubic blocks of ``block_cells`` cells per side (32 × 0.2 m = 6.4 m by
+Space is cut into cubic blocks of ``block_cells`` cells per side (64 × 0.2 m = 12.8 m by
 default). The logger keeps, for every block, the sorted set of its occupied cells (8 bytes per
 cell). A frame's ``occupied_keys_changed`` are added to their blocks and its
 ``freed_keys_changed`` removed; only the blocks this touched are re-logged, each as one entity
@@ -44,13 +45,18 @@ cell). A frame's ``occupied_keys_changed`` are added to their blocks and its
   also need a re-log of every older chunk that lost a cell). ``map_every=N`` batches the dirty
   blocks of N frames into one re-log to shrink long recordings further (``close()`` flushes).
 
-Cells are drawn as ``VoxelGridMap`` voxels (``cells="voxels"``: int32 grid indices + height
-value, colour-mapped by the viewer with Turbo over ``height_range``: the paper's "colour encodes
-normalised height"), or as ``Points3D``/``Boxes3D`` with colours computed here.
+Cells are drawn as ``VoxelGridMap`` voxels (``cells="voxels"``: int32 grid indices + one value
+per cell, colour-mapped by the viewer), or as ``Points3D``/``Boxes3D`` with colours computed
+here. ``colour="height"`` (default): Turbo over ``height_range``, the paper's "colour encodes
+normalised height". ``colour="probability"``: viridis over occupancy probability 0.5-1
+(``codec.probability_colours``); the updates must then also carry ``updated_cells`` (M,3 centres
+of the cells whose occupancy probability changed this frame) and ``updated_probability`` (M,
+that probability after the frame); a block whose occupied cells changed probability is re-logged.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import sys
@@ -60,155 +66,56 @@ from typing import Any
 import numpy as np
 
 from mono_map.errors import MonoMapError
+from mono_map.io import atomic_path
+from mono_map.viz.codec import (DEFAULT_HEIGHT_RANGE, PROBABILITY_RANGE, apply_lut, cell_indices, colormap_lut,
+                                encode_jpeg_bgr, encode_jpeg_rgb, encode_png, group_by_block, height_range_of,
+                                heights, map_bounds, occupied_cells_from_bt, pack, sorted_difference,
+                                sorted_union, unpack)
 
 APP_ID = "mono-map"
-# Bits per axis when packing integer cell indices into one int64 (indices within ±2^20 cells).
-_BITS = 21
-_OFF = 1 << (_BITS - 1)
-_MASK = (1 << _BITS) - 1
-DEFAULT_HEIGHT_RANGE = (-2.5, 4.0)   # metres above cam0 (KITTI: ground ≈ -1.65 m, shown blue)
 STAT_NAMES = ("frames_per_s", "memory_mb", "leaf_count", "mean_entropy", "kept_fraction", "n_points")
 IMAGE_VIEWS = ("world/camera/image", "frame/depth", "frame/entropy", "frame/kept_mask")
 CELL_STYLES = ("voxels", "points", "boxes")
-
-
-# --------------------------------------------------------------------------- pure helpers
-
-
-def cell_indices(centres: np.ndarray, resolution: float) -> np.ndarray:
-    """World cell centres (N,3) metres → integer cell indices (N,3) int64, centre = (i+0.5)·res."""
-    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
-    return np.floor(c / resolution).astype(np.int64)
-
-
-def pack(idx: np.ndarray) -> np.ndarray:
-    """Integer cell indices (N,3) → one sortable int64 key each."""
-    i = np.asarray(idx, dtype=np.int64) + _OFF
-    if i.size and (i.min() < 0 or i.max() > _MASK):
-        raise MonoMapError("map cells: index outside the ±2^20 cell range the viewer supports")
-    return (i[:, 0] << (2 * _BITS)) | (i[:, 1] << _BITS) | i[:, 2]
-
-
-def sorted_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Sorted unique union of sorted unique ``a`` and any ``b`` (sort-based: numpy 2's hash-based
-    ``union1d`` is several times slower on int64 keys)."""
-    u = np.sort(np.concatenate([a, b]), kind="stable")
-    return u[np.concatenate([[True], u[1:] != u[:-1]])] if len(u) else u
-
-
-def sorted_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Elements of sorted unique ``a`` not in ``b``."""
-    if len(a) == 0 or len(b) == 0:
-        return a
-    bs = np.sort(b)
-    pos = np.minimum(np.searchsorted(bs, a), len(bs) - 1)
-    return a[bs[pos] != a]
-
-
-def unpack(keys: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`pack`: int64 keys (N,) → integer indices (N,3) int64."""
-    k = np.asarray(keys, dtype=np.int64)
-    return np.stack([(k >> (2 * _BITS)) & _MASK, (k >> _BITS) & _MASK, k & _MASK], axis=1) - _OFF
-
-
-def heights(idx: np.ndarray, resolution: float) -> np.ndarray:
-    """Height above the cam0 origin (metres) of cell centres: world y points down, so height = -y."""
-    return (-(np.asarray(idx)[:, 1].astype(np.float64) + 0.5) * resolution).astype(np.float32)
-
-
-def colormap_lut(name: str = "turbo") -> np.ndarray:
-    """256×3 uint8 lookup table of a matplotlib colormap."""
-    from matplotlib import colormaps
-
-    return (colormaps[name](np.linspace(0.0, 1.0, 256))[:, :3] * 255 + 0.5).astype(np.uint8)
-
-
-def apply_lut(values: np.ndarray, lo: float, hi: float, lut: np.ndarray) -> np.ndarray:
-    """Map values to colours: clip to [lo, hi], normalise, look up (…×3 uint8)."""
-    t = (np.nan_to_num(np.asarray(values, dtype=np.float32), nan=lo) - lo) / max(hi - lo, 1e-9)
-    return lut[np.clip((t * 255).astype(np.int32), 0, 255)]
-
-
-def occupied_cells_from_bt(path: str | Path) -> tuple[np.ndarray, float]:
-    """Read an OctoMap ``.bt`` → (occupied cell centres (N,3) metres at finest resolution, resolution).
-
-    Pruned (merged) occupied nodes are expanded into their finest-level cells.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise MonoMapError(f"{path}: no such map file")
-    import octomap
-
-    tree = octomap.OcTree(0.1)
-    ok = tree.readBinary(str(path).encode())
-    if not ok:
-        raise MonoMapError(f"{path}: not a readable OctoMap binary (.bt) file")
-    res = float(tree.getResolution())
-    centres, sizes = [], []
-    for leaf in tree.begin_leafs():
-        if tree.isNodeOccupied(leaf):
-            centres.append(leaf.getCoordinate())
-            sizes.append(leaf.getSize())
-    if not centres:
-        return np.zeros((0, 3)), res
-    centres = np.asarray(centres, dtype=np.float64)
-    sizes = np.asarray(sizes, dtype=np.float64)
-    out = [centres[sizes <= res * 1.5]]
-    for c, s in zip(centres[sizes > res * 1.5], sizes[sizes > res * 1.5]):
-        n = int(round(s / res))
-        g = (np.arange(n) + 0.5) * res - s / 2
-        out.append(c + np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3))
-    return np.concatenate(out), res
-
-
-def map_bounds(centres: np.ndarray, q=(1.0, 99.0)) -> tuple[np.ndarray, np.ndarray]:
-    """Robust bounding box (metres) of cell centres: per-axis percentiles ``q``."""
-    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
-    if len(c) == 0:
-        return np.zeros(3), np.zeros(3)
-    return np.percentile(c, q[0], axis=0), np.percentile(c, q[1], axis=0)
-
-
-def height_range_of(idx: np.ndarray, resolution: float, q=(2.0, 98.0), pad_low: float = 0.12
-                    ) -> tuple[float, float]:
-    """Robust height range (metres) of cells for colour normalisation.
-
-    Percentiles ``q`` of the cell heights; the low end is lowered by ``pad_low`` of the span so the
-    ground maps to Turbo's blue rather than its near-black bottom.
-    """
-    if len(idx) == 0:
-        return DEFAULT_HEIGHT_RANGE
-    lo, hi = (float(v) for v in np.percentile(heights(idx, resolution), q))
-    hi = max(hi, lo + resolution)
-    return lo - pad_low * (hi - lo), hi
+COLOURS = ("height", "probability")
 
 
 def cells_archetype(idx: np.ndarray, resolution: float, style: str = "voxels",
-                    height_range: tuple[float, float] = DEFAULT_HEIGHT_RANGE, lut: np.ndarray | None = None,
-                    origin: np.ndarray | None = None):
-    """rerun archetype drawing cells (integer indices (N,3)) coloured by height = -y (metres).
+                    height_range: tuple[float, float] = DEFAULT_HEIGHT_RANGE, origin: np.ndarray | None = None,
+                    probability: np.ndarray | None = None):
+    """rerun archetype drawing cells (integer indices (N,3)).
 
-    "voxels": ``VoxelGridMap`` (height values, Turbo colour-mapped by the viewer over height_range);
-    voxel indices are stored relative to ``origin`` (a block corner, cells) with the grid translated
-    by origin·res, so they are small numbers that the recording's LZ4 compresses well.
+    Colour: height = -y (metres) over ``height_range`` with Turbo, or, if ``probability`` (N,) is
+    given, occupancy probability over ``PROBABILITY_RANGE`` with viridis.
+    "voxels": ``VoxelGridMap`` (values colour-mapped by the viewer); voxel indices are stored
+    relative to ``origin`` (a block corner, cells) with the grid translated by origin·res, so they
+    are small numbers that the recording's LZ4 compresses well.
     "points": ``Points3D`` of radius res/2; "boxes": solid ``Boxes3D`` (colours computed here).
     """
     import rerun as rr
 
-    lo, hi = height_range
+    if probability is None:
+        values, (lo, hi), cmap = heights(idx, resolution), height_range, "turbo"
+    else:
+        values, (lo, hi), cmap = np.asarray(probability, np.float32), PROBABILITY_RANGE, "viridis"
     if style == "voxels":
         o = np.zeros(3, np.int64) if origin is None else np.asarray(origin, np.int64)
         return rr.VoxelGridMap(
             (idx - o).astype(np.int32), voxel_size=[resolution] * 3,
-            values=np.clip(heights(idx, resolution), lo, hi),  # the viewer greys out-of-range values
-            value_range=[lo, hi], colormap=rr.components.Colormap.Turbo,
+            values=np.clip(values, lo, hi),  # the viewer greys out-of-range values
+            value_range=[lo, hi], colormap=getattr(rr.components.Colormap, cmap.capitalize()),
             translation=(o * resolution).astype(np.float64))
     centres = ((idx.astype(np.float64) + 0.5) * resolution).astype(np.float32)
-    colours = apply_lut(heights(idx, resolution), lo, hi, lut if lut is not None else colormap_lut("turbo"))
+    colours = apply_lut(values, lo, hi, colormap_lut(cmap))
     if style == "points":
         return rr.Points3D(centres, colors=colours, radii=resolution / 2)
     return rr.Boxes3D(centers=centres, half_sizes=[resolution / 2] * 3, colors=colours,
                       fill_mode=rr.components.FillMode.Solid)
+
+
+def block_path(block_key: int) -> str:
+    """Entity path of the map block with packed block index ``block_key``."""
+    bx, by, bz = unpack(np.array([block_key]))[0].tolist()
+    return f"world/map/occupied/b{bx}_{by}_{bz}"
 
 
 def rerun_binary() -> str:
@@ -229,44 +136,16 @@ def rerun_binary() -> str:
     return exe
 
 
-def spawn_viewer(port: int = 9876):
-    """Start a detached rerun viewer (or reuse one already listening on ``port``); return its sink."""
+def spawn_viewer(rec, port: int = 9876):
+    """Start a detached rerun viewer (or reuse one already listening on ``port``) for recording
+    ``rec``; return the sink that streams to it."""
     import rerun as rr
-    from rerun._spawn import _spawn_viewer
 
     try:
-        _spawn_viewer(port=port, hide_welcome_screen=True, executable_path=rerun_binary())
+        rr.spawn(port=port, connect=False, hide_welcome_screen=True, executable_path=rerun_binary(), recording=rec)
     except RuntimeError as exc:
         raise MonoMapError(f"--viewer: could not start the rerun viewer ({str(exc).splitlines()[0]})") from None
     return rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy")
-
-
-# --------------------------------------------------------------------------- image encoding
-
-
-def _encode(ext: str, img: np.ndarray, params: list[int]) -> bytes:
-    import cv2
-
-    ok, buf = cv2.imencode(ext, img, params)
-    if not ok:  # pragma: no cover - cv2 failure
-        raise MonoMapError(f"viewer: could not encode a {ext} image")
-    return buf.tobytes()
-
-
-def encode_jpeg_rgb(rgb: np.ndarray, quality: int = 85) -> bytes:
-    return encode_jpeg_bgr(np.ascontiguousarray(rgb[..., ::-1]), quality)
-
-
-def encode_jpeg_bgr(bgr: np.ndarray, quality: int = 85) -> bytes:
-    import cv2
-
-    return _encode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
-
-
-def encode_png(gray_or_u16: np.ndarray) -> bytes:
-    import cv2
-
-    return _encode(".png", np.ascontiguousarray(gray_or_u16), [cv2.IMWRITE_PNG_COMPRESSION, 1])
 
 
 # --------------------------------------------------------------------------- the logger
@@ -280,14 +159,15 @@ class RerunMapLogger:
       stream to it live (both may be given); reference_map: a ``.bt`` (e.g. the LiDAR-FOV map)
       logged once, static, in its own 3-D view; resolution: map cell size (must match the build);
       block_cells: spatial block edge in cells; map_every: re-log dirty blocks every N frames;
-      cells: "voxels" | "points" | "boxes"; height_range: (lo, hi) heights for the colour scale
-      (None: from the reference map if given, else DEFAULT_HEIGHT_RANGE); max_points: cap on this
-      frame's logged end points; trajectory_block: frames per trajectory segment entity;
-      entropy_max: top of the entropy colour scale (nats; default ln 64, the 64-bin maximum);
-      jpeg_quality: of image_2 and the entropy picture; aux_scale: size of the depth, entropy and
-      mask pictures relative to image_2 (they fill quarter-width panels; 0.5 quarters their cost);
-      image_size: (H, W) of image_2 for the camera frustum when updates carry no image (LiDAR
-      sources; default: twice the principal point); flush_s: seconds of rows batched per chunk.
+      cells: "voxels" | "points" | "boxes"; colour: "height" | "probability" (of the map cells;
+      the reference map is always coloured by height); height_range: (lo, hi) heights for the
+      colour scale (None: from the reference map if given, else DEFAULT_HEIGHT_RANGE); max_points:
+      cap on this frame's logged end points; trajectory_block: frames per trajectory segment
+      entity; entropy_max: top of the entropy colour scale (nats; default ln 64, the 64-bin
+      maximum); jpeg_quality: of image_2 and the entropy picture; aux_scale: size of the depth,
+      entropy and mask pictures relative to image_2 (they fill quarter-width panels; 0.5 quarters
+      their cost); image_size: (H, W) of image_2 for the camera frustum when updates carry no image
+      (LiDAR sources; default: twice the principal point); flush_s: seconds of rows batched per chunk.
     """
 
     def __init__(
@@ -300,6 +180,7 @@ class RerunMapLogger:
         block_cells: int = 64,
         map_every: int = 1,
         cells: str = "voxels",
+        colour: str = "height",
         height_range: tuple[float, float] | None = None,
         max_points: int = 8000,
         trajectory_block: int = 100,
@@ -317,21 +198,24 @@ class RerunMapLogger:
             raise MonoMapError("viewer: give --rrd FILE and/or --viewer")
         if cells not in CELL_STYLES:
             raise MonoMapError(f"cells: {cells!r} is not one of {', '.join(CELL_STYLES)}")
+        if colour not in COLOURS:
+            raise MonoMapError(f"colour: {colour!r} is not one of {', '.join(COLOURS)}")
         if not resolution > 0:
             raise MonoMapError(f"resolution: must be > 0 (got {resolution})")
         if block_cells < 1 or map_every < 1 or trajectory_block < 2:
             raise MonoMapError("viewer: block_cells and map_every must be ≥ 1, trajectory_block ≥ 2")
+        if not 0 < aux_scale <= 1:
+            raise MonoMapError(f"aux_scale: must be in (0, 1] (got {aux_scale})")
         self.rr = rr
         self.resolution = float(resolution)
         self.block_cells = int(block_cells)
         self.map_every = int(map_every)
         self.cells = cells
+        self.colour = colour
         self.max_points = int(max_points)
         self.trajectory_block = int(trajectory_block)
         self.entropy_max = float(entropy_max)
         self.jpeg_quality = int(jpeg_quality)
-        if not 0 < aux_scale <= 1:
-            raise MonoMapError(f"aux_scale: must be in (0, 1] (got {aux_scale})")
         self.aux_scale = float(aux_scale)
         self.rrd = Path(rrd) if rrd is not None else None
         self.image_size = tuple(image_size) if image_size is not None else None
@@ -343,7 +227,6 @@ class RerunMapLogger:
             self._ref_res = ref_res
         self.height_range = tuple(height_range) if height_range is not None else (
             height_range_of(ref_idx, self._ref_res) if ref_idx is not None else DEFAULT_HEIGHT_RANGE)
-        self._turbo = colormap_lut("turbo")
         self._magma_bgr = np.ascontiguousarray(colormap_lut("magma")[:, ::-1])
 
         # Batch rows for a few seconds before cutting chunks: every touched block is one row per frame,
@@ -360,41 +243,39 @@ class RerunMapLogger:
             from mono_map.viz.blueprint import default_blueprint
 
             bp = default_blueprint(reference=self._has_reference)
+        viewer = spawn_viewer(self.rec) if spawn else None
+        # The recording is written to a temporary file beside the target and renamed on close():
+        # the .rrd appears whole or not at all.
+        self._files = contextlib.ExitStack()
         sinks = []
-        self._tmp_rrd = None
         if self.rrd is not None:
-            self.rrd.parent.mkdir(parents=True, exist_ok=True)
-            # Written beside the target and renamed on close(): the .rrd appears whole or not at all.
-            self._tmp_rrd = self.rrd.with_name(f".{self.rrd.name}.tmp")
-            sinks.append(rr.FileSink(str(self._tmp_rrd)))
-        if spawn:
-            sinks.append(spawn_viewer())
+            sinks.append(rr.FileSink(str(self._files.enter_context(atomic_path(self.rrd)))))
+        if viewer is not None:
+            sinks.append(viewer)
         self.rec.set_sinks(*sinks, default_blueprint=bp)
 
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
         for name in STAT_NAMES + ("map_cells",):
             self.rec.log(f"stats/{name}", rr.SeriesLines(names=name), static=True)
         if ref_idx is not None:
-            self.rec.log("world/reference_map", self._cells_archetype(ref_idx, self._ref_res), static=True)
+            self.rec.log("world/reference_map", cells_archetype(ref_idx, self._ref_res, self.cells, self.height_range),
+                         static=True)
             self.reference_cells = len(ref_idx)
         else:
             self.reference_cells = 0
 
         self._blocks: dict[int, np.ndarray] = {}   # packed block index → sorted packed cell indices
+        self._block_probs: dict[int, np.ndarray] = {}   # colour="probability": float32 per cell of _blocks
         self.blocks_logged = 0      # block re-logs so far (size accounting for the benchmark)
         self.cells_logged = 0       # cells sent so far, re-sends included
         self.block_entities: set[int] = set()
-        self._pending_add: list[np.ndarray] = []
-        self._pending_rem: list[np.ndarray] = []
+        self._pending: list[tuple] = []   # per frame: (added keys, freed keys, (keys, probabilities) or None)
         self._traj_seg: list[np.ndarray] = []
         self._traj_n = 0
         self._pinhole_logged = None
         self.frames = 0
         self.map_cells = 0
         self._closed = False
-
-    def _cells_archetype(self, idx: np.ndarray, resolution: float, origin=None):
-        return cells_archetype(idx, resolution, self.cells, self.height_range, self._turbo, origin)
 
     # ----------------------------------------------------------------- per frame
 
@@ -411,8 +292,9 @@ class RerunMapLogger:
         self._log_trajectory(update)
 
         self._check_resolution(update.occupied_keys_changed)
-        self._pending_add.append(pack(cell_indices(update.occupied_keys_changed, self.resolution)))
-        self._pending_rem.append(pack(cell_indices(update.freed_keys_changed, self.resolution)))
+        self._pending.append((pack(cell_indices(update.occupied_keys_changed, self.resolution)),
+                              pack(cell_indices(update.freed_keys_changed, self.resolution)),
+                              self._probability_update(update) if self.colour == "probability" else None))
         self.frames += 1
         if self.frames % self.map_every == 0:
             self._flush_map()
@@ -430,6 +312,19 @@ class RerunMapLogger:
         if len(c) and np.abs(c - np.floor(c) - 0.5).max() > 1e-3:
             raise MonoMapError(f"viewer: changed cells are not centres of {self.resolution:g} m cells "
                                f"(give RerunMapLogger the build's resolution)")
+
+    def _probability_update(self, u: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(packed keys, float32 probabilities) of the cells whose occupancy probability changed."""
+        cells, prob = getattr(u, "updated_cells", None), getattr(u, "updated_probability", None)
+        if cells is None or prob is None:
+            raise MonoMapError("viewer: colour='probability' needs updates carrying updated_cells and "
+                               "updated_probability")
+        cells = np.asarray(cells, dtype=np.float64).reshape(-1, 3)
+        prob = np.asarray(prob, dtype=np.float32).reshape(-1)
+        if len(cells) != len(prob):
+            raise MonoMapError(f"viewer: {len(cells)} updated_cells but {len(prob)} updated_probability values")
+        self._check_resolution(cells)
+        return pack(cell_indices(cells, self.resolution)), prob
 
     def _log_camera(self, u: Any) -> None:
         rr = self.rr
@@ -503,37 +398,45 @@ class RerunMapLogger:
 
     def _flush_map(self) -> None:
         """Apply the pending per-frame changes (in frame order) and re-log every touched block."""
-        pending = list(zip(self._pending_add, self._pending_rem))
-        self._pending_add, self._pending_rem = [], []
+        pending, self._pending = self._pending, []
         touched: set[int] = set()
-        for add, rem in pending:
+        by_prob = self.colour == "probability"
+        for add, rem, prob in pending:
             for keys, adding in ((add, True), (rem, False)):
-                if len(keys) == 0:
-                    continue
-                bkeys = pack(np.floor_divide(unpack(keys), self.block_cells))
-                order = np.argsort(bkeys, kind="stable")
-                ub, starts = np.unique(bkeys[order], return_index=True)
-                ends = np.append(starts[1:], len(order))
-                for bk, s0, s1 in zip(ub.tolist(), starts, ends):
-                    kb = keys[order[s0:s1]]
+                for bk, pos in group_by_block(unpack(keys), self.block_cells):
+                    kb = keys[pos]
                     old = self._blocks.get(bk)
                     old = old if old is not None else np.zeros(0, np.int64)
                     new = sorted_union(old, kb) if adding else sorted_difference(old, kb)
                     self.map_cells += len(new) - len(old)
+                    if by_prob:
+                        self._block_probs[bk] = carry_values(old, self._block_probs.get(bk), new)
                     if len(new):
                         self._blocks[bk] = new
                     else:
                         self._blocks.pop(bk, None)
+                        self._block_probs.pop(bk, None)
                     touched.add(bk)
+            if prob is not None:
+                keys, values = prob
+                for bk, pos in group_by_block(unpack(keys), self.block_cells):
+                    cur = self._blocks.get(bk)
+                    if cur is None:
+                        continue  # no occupied cell in this block: nothing drawn changes colour
+                    i = np.minimum(np.searchsorted(cur, keys[pos]), len(cur) - 1)
+                    hit = cur[i] == keys[pos]
+                    if hit.any():
+                        self._block_probs[bk][i[hit]] = values[pos][hit]
+                        touched.add(bk)
         for bk in sorted(touched):
-            bx, by, bz = unpack(np.array([bk]))[0].tolist()
-            path = f"world/map/occupied/b{bx}_{by}_{bz}"
+            path = block_path(bk)
             keys = self._blocks.get(bk)
             if keys is None:
                 self.rec.log(path, self.rr.Clear(recursive=False))
             else:
-                origin = np.array([bx, by, bz]) * self.block_cells
-                self.rec.log(path, self._cells_archetype(unpack(keys), self.resolution, origin))
+                origin = unpack(np.array([bk]))[0] * self.block_cells
+                self.rec.log(path, cells_archetype(unpack(keys), self.resolution, self.cells, self.height_range,
+                                                   origin, self._block_probs.get(bk) if by_prob else None))
                 self.cells_logged += len(keys)
         self.blocks_logged += len(touched)
         self.block_entities |= touched
@@ -568,10 +471,7 @@ class RerunMapLogger:
             self.rec.send_blueprint(default_blueprint(reference=self._has_reference, eye=eye_for_bounds(lo, hi)))
         self.rec.flush(timeout_sec=60.0)  # bounded: a closed live viewer must not hang the build
         self.rec.disconnect()
-        if self._tmp_rrd is not None:
-            import os
-
-            os.replace(self._tmp_rrd, self.rrd)
+        self._files.close()  # atomic_path renames the finished recording into place
 
     def abort(self) -> None:
         """Stop without writing the recording (used when the build fails)."""
@@ -579,8 +479,8 @@ class RerunMapLogger:
             return
         self._closed = True
         self.rec.disconnect()
-        if self._tmp_rrd is not None and self._tmp_rrd.exists():
-            self._tmp_rrd.unlink()
+        discarded = MonoMapError("viewer: recording discarded")
+        self._files.__exit__(type(discarded), discarded, None)  # atomic_path removes the temporary file
 
     def __enter__(self) -> "RerunMapLogger":
         return self
@@ -592,6 +492,16 @@ class RerunMapLogger:
             self.abort()
 
 
+def carry_values(old_keys: np.ndarray, old_values: np.ndarray | None, new_keys: np.ndarray) -> np.ndarray:
+    """Per-cell float32 values of sorted ``old_keys`` carried over to sorted ``new_keys`` (NaN where new)."""
+    out = np.full(len(new_keys), np.nan, dtype=np.float32)
+    if len(old_keys) and len(new_keys) and old_values is not None:
+        i = np.minimum(np.searchsorted(old_keys, new_keys), len(old_keys) - 1)
+        hit = old_keys[i] == new_keys
+        out[hit] = old_values[i[hit]]
+    return out
+
+
 # --------------------------------------------------------------------------- finished maps
 
 
@@ -600,7 +510,8 @@ def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool =
     """Log a finished OctoMap ``.bt``: occupied cells (finest resolution) coloured by height.
 
     Static data, one entity per spatial block ``world/map/occupied/b<X>_<Y>_<Z>`` (as in the
-    stream), height range = the map's own 2-98th percentile. Returns counts for the caller.
+    stream), height range = the map's own 2-98th percentile. The ``.rrd`` is written atomically.
+    Returns counts for the caller.
     """
     import rerun as rr
 
@@ -608,79 +519,24 @@ def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool =
 
     if cells not in CELL_STYLES:
         raise MonoMapError(f"--cells: {cells!r} is not one of {', '.join(CELL_STYLES)}")
+    if rrd is None and not spawn:
+        raise MonoMapError("view: nothing to do (no --save and no viewer)")
     centres, res = occupied_cells_from_bt(bt_path)
     idx = cell_indices(centres, res)
     hrange = height_range_of(idx, res)
-    lut = colormap_lut("turbo")
     rec = rr.RecordingStream(APP_ID, recording_id=None)
     rec.send_recording_name(Path(bt_path).name)
-    sinks, tmp = [], None
-    if rrd is not None:
-        rrd = Path(rrd)
-        rrd.parent.mkdir(parents=True, exist_ok=True)
-        tmp = rrd.with_name(f".{rrd.name}.tmp")
-        sinks.append(rr.FileSink(str(tmp)))
-    if spawn:
-        sinks.append(spawn_viewer())
-    if not sinks:
-        raise MonoMapError("view: nothing to do (no --save and no viewer)")
     eye = eye_for_bounds(*map_bounds(centres)) if len(centres) else None
-    rec.set_sinks(*sinks, default_blueprint=default_blueprint(reference=False, frames=False, eye=eye))
-    rec.log("world", rr.ViewCoordinates.RDF, static=True)
-    blocks = pack(np.floor_divide(idx, block_cells)) if len(idx) else np.zeros(0, np.int64)
-    order = np.argsort(blocks, kind="stable")
-    ub, starts = np.unique(blocks[order], return_index=True)
-    ends = np.append(starts[1:], len(order))
-    for bk, s0, s1 in zip(ub, starts, ends):
-        bx, by, bz = unpack(np.array([bk]))[0].tolist()
-        rec.log(f"world/map/occupied/b{bx}_{by}_{bz}", cells_archetype(idx[order[s0:s1]], res, cells, hrange, lut,
-                                                                  np.array([bx, by, bz]) * block_cells),
-                static=True)
-    rec.flush(timeout_sec=60.0)
-    rec.disconnect()
-    if tmp is not None:
-        import os
-
-        os.replace(tmp, rrd)
-    return {"cells": int(len(idx)), "blocks": int(len(ub)), "resolution": res,
-            "height_range": hrange}
-
-
-# --------------------------------------------------------------------------- reading recordings back
-
-
-def read_recording(path: str | Path) -> dict[str, list[tuple[int | None, dict]]]:
-    """Rows of an ``.rrd`` via rerun's own reader: {entity path: [(frame or None if static, {column: value})]}."""
-    from collections import defaultdict
-
-    from rerun.chunk import RrdReader
-
-    rows: dict[str, list] = defaultdict(list)
-    for chunk in RrdReader(path).stream():
-        rb = chunk.to_record_batch()
-        cols = {n: rb.column(n).to_pylist() for n in rb.schema.names if n != "rerun.controls.RowId"}
-        for i in range(rb.num_rows):
-            frame = cols["frame"][i] if "frame" in cols else None
-            rows[chunk.entity_path].append((frame, {k: v[i] for k, v in cols.items()}))
-    return dict(rows)
-
-
-def voxel_cells(row: dict, resolution: float) -> set[tuple[int, int, int]]:
-    """Absolute cell indices of one ``VoxelGridMap`` row (its indices are relative to its translation)."""
-    idx = np.asarray(row["VoxelGridMap:voxel_indices"], dtype=np.int64).reshape(-1, 3)
-    t = row.get("VoxelGridMap:translation")
-    if t is not None:
-        idx = idx + np.round(np.asarray(t[0]) / resolution).astype(np.int64)
-    return {tuple(v) for v in idx.tolist()}
-
-
-def map_cells_at(rows: dict, frame: int, resolution: float) -> set[tuple[int, int, int]]:
-    """Occupied cells a viewer shows at ``frame``: the latest-at value of every map block entity."""
-    cells: set = set()
-    for path, entries in rows.items():
-        if not path.startswith("/world/map/occupied/"):
-            continue
-        past = [e for f, e in sorted((r for r in entries if r[0] is not None), key=lambda r: r[0]) if f <= frame]
-        if past and past[-1].get("VoxelGridMap:voxel_indices") is not None:
-            cells |= voxel_cells(past[-1], resolution)
-    return cells
+    with contextlib.ExitStack() as files:
+        sinks = [rr.FileSink(str(files.enter_context(atomic_path(rrd))))] if rrd is not None else []
+        if spawn:
+            sinks.append(spawn_viewer(rec))
+        rec.set_sinks(*sinks, default_blueprint=default_blueprint(reference=False, frames=False, eye=eye))
+        rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        blocks = group_by_block(idx, block_cells)
+        for bk, pos in blocks:
+            origin = unpack(np.array([bk]))[0] * block_cells
+            rec.log(block_path(bk), cells_archetype(idx[pos], res, cells, hrange, origin), static=True)
+        rec.flush(timeout_sec=60.0)
+        rec.disconnect()
+    return {"cells": int(len(idx)), "blocks": len(blocks), "resolution": res, "height_range": hrange}

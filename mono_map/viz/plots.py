@@ -1,0 +1,170 @@
+"""Every matplotlib figure of mono-map, written atomically as PNG (dicts and trees in, files out).
+
+* :func:`render_topdown` — top-down, height-coloured pictures of OctoMaps (the paper's Fig. 2 style).
+  World = first cam0 frame: x right, y DOWN, z forward. The picture looks down on the x–z plane;
+  colour encodes height = -y, normalised over the shown maps (shared range), taken per pixel from
+  the highest occupied cell.
+* :func:`plot_sweep` — map accuracy and memory against ``keep`` (``mono-map table``).
+* :func:`plot_sparsification` — sparsification and oracle curves per head (``mono-map evaluate``).
+* :func:`plot_hypotheses` — oracle multi-hypothesis errors against M (``mono-map evaluate``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from mono_map.viz.codec import occupied_cells
+
+
+@contextlib.contextmanager
+def figure(path: str | Path, dpi: int, **savefig) -> Iterator:
+    """``with figure(path, dpi) as plt:`` draw with pyplot; on exit the current figure is saved
+    atomically to ``path`` (PNG) and closed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mono_map.io import atomic_path
+
+    try:
+        yield plt
+        with atomic_path(path, suffix=".png") as tmp:
+            plt.gcf().savefig(tmp, dpi=dpi, **savefig)
+    finally:
+        plt.close(plt.gcf())
+
+
+# --------------------------------------------------------------------------- top-down maps
+
+
+def picture_extent(points: np.ndarray, res: float, pad: float = 2.0) -> tuple[float, float, float, float]:
+    """(xmin, xmax, zmin, zmax) around ``points`` (metres, world), padded, with edges on multiples of
+    ``res``: OctoMap cell centres ((k + 0.5) · cell) then never fall on a pixel border."""
+    x0, x1 = points[:, 0].min() - pad, points[:, 0].max() + pad
+    z0, z1 = points[:, 2].min() - pad, points[:, 2].max() + pad
+    return (float(np.floor(x0 / res) * res), float(np.ceil(x1 / res) * res),
+            float(np.floor(z0 / res) * res), float(np.ceil(z1 / res) * res))
+
+
+def height_image(points: np.ndarray, extent: tuple[float, float, float, float], res: float) -> np.ndarray:
+    """H×W float image of max height (-y) per (x, z) pixel; NaN where empty. extent = (xmin, xmax, zmin, zmax)."""
+    xmin, xmax, zmin, zmax = extent
+    w = max(1, int(np.ceil((xmax - xmin) / res)))
+    h = max(1, int(np.ceil((zmax - zmin) / res)))
+    img = np.full(h * w, -np.inf)
+    if len(points):
+        col = np.clip(((points[:, 0] - xmin) / res).astype(np.int64), 0, w - 1)
+        row = np.clip(((zmax - points[:, 2]) / res).astype(np.int64), 0, h - 1)   # forward = up in the picture
+        np.maximum.at(img, row * w + col, -points[:, 1])
+    img[~np.isfinite(img)] = np.nan
+    return img.reshape(h, w)
+
+
+def render_topdown(maps: list[tuple[str, object]], path: str | Path, res: float | None = None,
+                   height_range: tuple[float, float] | None = None, dpi: int = 150) -> Path:
+    """Side-by-side top-down pictures of (title, octomap.OcTree) pairs, written atomically as PNG."""
+    clouds = [(title, occupied_cells(tree)[0]) for title, tree in maps]
+    allp = np.concatenate([c for _, c in clouds if len(c)]) if any(len(c) for _, c in clouds) else np.zeros((1, 3))
+    cell = float(maps[0][1].getResolution())
+    # one picture pixel per screen pixel (max height over the cells it covers), never finer than a cell:
+    # finer pixels leave empty rows/columns between cells (moire), coarser screen sampling drops cells
+    x0, x1 = picture_extent(allp, cell)[:2]
+    res = res or max(cell, (x1 - x0) / (4.5 * dpi * 0.8))
+    extent = picture_extent(allp, res)
+    if height_range is None:
+        hgt = -allp[:, 1]
+        height_range = (float(np.percentile(hgt, 1)), float(np.percentile(hgt, 99)))
+    lo, hi = height_range
+    aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-6)
+    width_in = 4.5 * len(clouds)
+    with figure(path, dpi, bbox_inches="tight") as plt:
+        fig, axes = plt.subplots(1, len(clouds), figsize=(width_in, min(4.5 * aspect, 14) + 0.8), squeeze=False)
+        for ax, (title, pts) in zip(axes[0], clouds):
+            img = height_image(pts, extent, res)
+            norm = (img - lo) / max(hi - lo, 1e-6)
+            im = ax.imshow(np.clip(norm, 0, 1), cmap="turbo", vmin=0, vmax=1, interpolation="nearest",
+                           extent=extent, origin="upper")
+            ax.set_facecolor("black")
+            ax.set_title(f"{title}\n{len(pts):,} occupied cells", fontsize=9)
+            ax.set_xlabel("x (m, right)")
+            ax.set_ylabel("z (m, forward)")
+        cb = fig.colorbar(im, ax=axes[0].tolist(), fraction=0.02, pad=0.01)
+        cb.set_label(f"normalised height (-y), {lo:.1f}…{hi:.1f} m")
+    return Path(path)
+
+
+# --------------------------------------------------------------------------- map table
+
+
+def plot_sweep(rows: list[dict], path: Path, reference_label: str = "LiDAR-FOV") -> None:
+    """Accuracy (left axis) and memory (right axis) of the mono rows against keep; the LiDAR-FOV row's
+    memory as a dotted line. ``rows``: ``mono-map table`` rows (source, keep, accuracy, accuracy_covered,
+    memory_mb)."""
+    mono = sorted((r for r in rows if r["source"] == "mono"), key=lambda r: r["keep"])
+    ref = next(r for r in rows if r["source"] == "lidar-fov")
+    keeps = [r["keep"] for r in mono]
+    with figure(path, 130) as plt:
+        fig, ax1 = plt.subplots(figsize=(6, 4.6))
+        ax1.plot(keeps, [100 * r["accuracy"] for r in mono], "o-", color="tab:blue", label="accuracy")
+        ax1.plot(keeps, [100 * r["accuracy_covered"] for r in mono], "s--", color="tab:cyan",
+                 label="accuracy (covered cells)")
+        ax1.set_xlabel("keep (fraction of lowest-entropy pixels)")
+        ax1.set_ylabel(f"accuracy vs {reference_label} map (%)", color="tab:blue")
+        ax2 = ax1.twinx()
+        ax2.plot(keeps, [r["memory_mb"] for r in mono], "^-", color="tab:red", label="memory")
+        ax2.axhline(ref["memory_mb"], color="tab:red", ls=":", lw=1, label="LiDAR-FOV memory")
+        ax2.set_ylabel("memory (MB, OctoMap memoryUsage)", color="tab:red")
+        h1, l1 = ax1.get_legend_handles_labels()
+        h2, l2 = ax2.get_legend_handles_labels()
+        ax1.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2,
+                   frameon=False)  # below the axes: the curves use the whole plot
+        ax1.grid(alpha=0.3)
+        fig.tight_layout()
+
+
+# --------------------------------------------------------------------------- depth evaluation
+
+
+def plot_sparsification(results: dict[str, dict], path: Path) -> None:
+    """Sparsification curves (entropy-ranked) and oracle curves (error-ranked) of ARE, RMSE and 1 − δ1,
+    one colour per head. ``results``: head → ``evaluate_model`` result (its "sparsification" entry)."""
+    with figure(path, 110) as plt:
+        fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+        names = {"are": "ARE", "rmse": "RMSE (m)", "1-d1": "1 − δ1"}
+        for ax, key in zip(axes, ("are", "rmse", "1-d1")):
+            for i, (h, r) in enumerate(results.items()):
+                s = r["sparsification"]
+                x = 100 * np.asarray(s["fractions"])
+                c = f"C{i}"
+                ax.plot(x, s["model"][key], color=c, label=f"{h} (AUC {s['auc'][key]:.3g})")
+                ax.plot(x, s["oracle"][key], color=c, ls="--", lw=0.8, label=f"{h} oracle")
+            ax.set_xlabel("% most confident pixels kept")
+            ax.set_ylabel(names[key])
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        fig.suptitle("Sparsification curves (entropy-ranked) and oracle curves (error-ranked)")
+        fig.tight_layout()
+
+
+def plot_hypotheses(results: dict[str, dict], path: Path) -> None:
+    """Oracle ARE and RMSE against the number of hypotheses M, one line per head. ``results``: head →
+    ``evaluate_model`` result (its "hypotheses" entry: str(M) → errors)."""
+    with figure(path, 110) as plt:
+        fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+        ms = sorted({int(m) for r in results.values() for m in r["hypotheses"]})
+        for i, (h, r) in enumerate(results.items()):
+            hy = r["hypotheses"]
+            axes[0].plot(ms, [hy[str(m)]["abs_rel"] for m in ms], "o-", color=f"C{i}", label=h)
+            axes[1].plot(ms, [hy[str(m)]["rmse"] for m in ms], "o-", color=f"C{i}", label=h)
+        for ax, lab in zip(axes, ("ARE", "RMSE (m)")):
+            ax.set_xlabel("number of hypotheses M (oracle picks the best)")
+            ax.set_ylabel(lab)
+            ax.set_xticks(ms)
+            ax.grid(alpha=0.3)
+            ax.legend()
+        fig.tight_layout()

@@ -1,0 +1,198 @@
+"""Structure rules of docs/architecture.md, checked on the source (ast, nothing imported):
+
+* no import cycles between mono_map modules (function-level imports included);
+* no private name (``_x``, or a ``_x`` module) imported from another module, nor reached as an
+  attribute of an imported mono_map module — in mono_map/ (any module, third-party included) and in
+  tools/ and tests/ (mono_map modules).
+
+Violations that other work is removing are listed below with their owner; the lists may only
+shrink: a new violation fails, and so does a listed one that is gone (delete its line then).
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = "mono_map"
+
+# Import cycles (strongly connected modules) still present, owner in the comment.
+KNOWN_CYCLES: set[frozenset[str]] = {
+    # issue 13 map-pipeline row (mapping/, private _frames_needed/_frames_tag shared by both)
+    frozenset({"mono_map.mapping.commands", "mono_map.mapping.table"}),
+    # issue 13 octree row (mapping/octree.py planned; lazy import in octree_from_cells)
+    frozenset({"mono_map.mapping.integrate", "mono_map.mapping.octree_io"}),
+}
+
+# (file, line text) of private imports still present, owner in the comment.
+KNOWN_PRIVATE: set[tuple[str, str]] = {
+    # issue 13 data row (synth camera/LiDAR ray casting helper)
+    ("mono_map/data/synth/lidar.py", "from mono_map.data.synth.camera import _cast"),
+    ("tests/test_synth.py", "from mono_map.data.synth.camera import _cast"),
+    # issue 13 map-pipeline / --frames row
+    ("mono_map/demo.py", "from mono_map.mapping.commands import _frames_tag, build_and_write, map_stem"),
+    ("mono_map/mapping/table.py", "from mono_map.mapping.commands import (_frames_needed, _frames_tag, "
+                                  "build_and_write, map_stem,"),
+    ("tools/bench_mapping.py", "from mono_map.mapping.commands import _frames_needed"),
+    # issue 13 depth-heads row (lead: decoding only through distribution.py)
+    ("mono_map/depth/losses.py", 'c = dist._centres(bins, p, space == "log")'),
+    # issue 13 octree row (Morton codes in mapping/octree.py)
+    ("mono_map/eval/map_metrics.py", "from mono_map.mapping.raycast import TREE_MAX_VAL, _spread_bits"),
+    ("mono_map/mapping/octree_io.py", "from mono_map.mapping.raycast import _spread_bits"),
+}
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(REPO).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def package_modules() -> dict[str, Path]:
+    return {module_name(p): p for p in sorted((REPO / PACKAGE).rglob("*.py"))}
+
+
+def is_private(name: str) -> bool:
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+def imports(path: Path, modules: dict[str, Path]):
+    """Every import in ``path`` (module level and inside functions): yields (line number, imported
+    module, [(name, local name)] or None for ``import x``), relative imports resolved."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    me = module_name(path) if path.is_relative_to(REPO / PACKAGE) else ""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield node.lineno, alias.name, None
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                pkg = me.split(".") if path.name == "__init__.py" else me.split(".")[:-1]
+                pkg = pkg[: len(pkg) - (node.level - 1)]
+                base = ".".join(pkg + ([base] if base else []))
+            yield node.lineno, base, [(a.name, a.asname or a.name) for a in node.names]
+
+
+def import_graph() -> dict[str, set[str]]:
+    """mono_map module → the mono_map modules it imports (``from pkg import submodule`` counts as the submodule)."""
+    modules = package_modules()
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for mod, path in modules.items():
+        for _, target, names in imports(path, modules):
+            if not target.startswith(PACKAGE):
+                continue
+            for name, _local in names or [(None, None)]:
+                sub = f"{target}.{name}" if name else None
+                dep = sub if sub in modules else target
+                if dep in modules and dep != mod:
+                    graph[mod].add(dep)
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> set[frozenset[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: set[frozenset[str]] = set()
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = set()
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.add(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.add(frozenset(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def private_imports() -> set[tuple[str, str]]:
+    """(file, stripped source line) of every private import / private attribute of an imported mono_map module."""
+    modules = package_modules()
+    files = sorted((REPO / PACKAGE).rglob("*.py")) + sorted((REPO / "tools").rglob("*.py")) + sorted(
+        (REPO / "tests").rglob("*.py"))
+    found = set()
+    for path in files:
+        ours = path.is_relative_to(REPO / PACKAGE)
+        lines = path.read_text().splitlines()
+        rel = path.relative_to(REPO).as_posix()
+        bound: set[str] = set()   # local names bound to imported mono_map modules
+        for lineno, target, names in imports(path, modules):
+            if not (ours or target.startswith(PACKAGE)):
+                continue
+            private_module = any(is_private(part) for part in target.split("."))
+            private_names = [n for n, _local in names or [] if is_private(n)]
+            if private_module or private_names:
+                found.add((rel, lines[lineno - 1].strip()))
+            if target.startswith(PACKAGE):
+                for n, local in names or []:
+                    if f"{target}.{n}" in modules:
+                        bound.add(local)
+        tree = ast.parse("\n".join(lines))
+        for node in ast.walk(tree):   # import mono_map.x as m / from mono_map import x; then m._y / x._y
+            if isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name.startswith(PACKAGE) and a.asname:
+                        bound.add(a.asname)
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Attribute) and is_private(node.attr) and isinstance(node.value, ast.Name)
+                    and node.value.id in bound):
+                found.add((rel, lines[node.lineno - 1].strip()))
+    return found
+
+
+def test_no_import_cycles_between_modules():
+    found = cycles(import_graph())
+    new = found - KNOWN_CYCLES
+    assert not new, "import cycles: " + "; ".join(" <-> ".join(sorted(c)) for c in new)
+    gone = KNOWN_CYCLES - found
+    assert not gone, "cycles fixed, delete them from KNOWN_CYCLES: " + "; ".join(" <-> ".join(sorted(c)) for c in gone)
+
+
+def test_no_private_names_imported_from_other_modules():
+    found = private_imports()
+    new = found - KNOWN_PRIVATE
+    assert not new, "private imports: " + "; ".join(f"{f}: {line}" for f, line in sorted(new))
+    gone = KNOWN_PRIVATE - found
+    assert not gone, "fixed, delete from KNOWN_PRIVATE: " + "; ".join(f"{f}: {line}" for f, line in sorted(gone))
+
+
+def test_the_checks_see_function_level_imports_and_attributes(tmp_path, monkeypatch):
+    """On a tiny fake package: a cycle closed by a lazy import inside a function, a relative import,
+    a private name and a private attribute of an imported module are all found."""
+    pkg = tmp_path / PACKAGE
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from mono_map.sub import b\n\ndef f():\n    return b._hidden\n")
+    (pkg / "sub" / "b.py").write_text("def g():\n    from ..a import f\n    from . import c\n    return f\n")
+    (pkg / "sub" / "c.py").write_text("from mono_map.sub.b import _x, g\n")
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    assert cycles(import_graph()) == {frozenset({"mono_map.a", "mono_map.sub.b", "mono_map.sub.c"})}
+    assert import_graph()["mono_map.sub.b"] == {"mono_map.a", "mono_map.sub.c"}
+    assert private_imports() == {("mono_map/a.py", "return b._hidden"),
+                                 ("mono_map/sub/c.py", "from mono_map.sub.b import _x, g")}
+    assert cycles({"a": {"b"}, "b": set()}) == set()
+    assert is_private("_spread_bits") and not is_private("__future__") and not is_private("spread")
