@@ -36,8 +36,6 @@ KNOWN_PRIVATE: set[tuple[str, str]] = {
     ("mono_map/mapping/table.py", "from mono_map.mapping.commands import (_frames_needed, _frames_tag, "
                                   "build_and_write, map_stem,"),
     ("tools/bench_mapping.py", "from mono_map.mapping.commands import _frames_needed"),
-    # issue 13 depth-heads row (lead: decoding only through distribution.py)
-    ("mono_map/depth/losses.py", 'c = dist._centres(bins, p, space == "log")'),
     # issue 13 octree row (Morton codes in mapping/octree.py)
     ("mono_map/eval/map_metrics.py", "from mono_map.mapping.raycast import TREE_MAX_VAL, _spread_bits"),
     ("mono_map/mapping/octree_io.py", "from mono_map.mapping.raycast import _spread_bits"),
