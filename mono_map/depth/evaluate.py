@@ -134,6 +134,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         "training": {k: predictor.training.get(k) for k in ("steps", "step", "wall_time_s", "command", "data")},
         "frames": names, "n_frames": len(names), "n_pixels": int(P["gt"].size),
         "metrics": mean_errors(per["log"]),
+        "per_frame": {n: {k: float(v) for k, v in e.items()} for n, e in zip(names, per["log"])},
         "metrics_linear": mean_errors(per["linear"]),
         "metrics_argmax": mean_errors(per["argmax"]),
         "sparsification": spars,
@@ -155,6 +156,13 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
     for h in heads:
         r = results[h]
         L.append(f"| {h} | " + " | ".join(f"{r['metrics'][m]:.3f}" for m in METRICS) + f" | {r['ms_per_frame']:.0f} |")
+    if any_r["n_frames"] <= 10:   # few frames (e.g. the real KITTI ones): every frame, since three are a hint
+        L += ["", "## Per frame (AbsRel / RMSE / δ<1.25)", "", "| head | " + " | ".join(any_r["per_frame"]) + " |",
+              "|---|" + "---|" * len(any_r["per_frame"])]
+        for h in heads:
+            pf = results[h]["per_frame"]
+            L.append(f"| {h} | " + " | ".join(f"{e['abs_rel']:.3f} / {e['rmse']:.2f} / {e['a1']:.3f}"
+                                               for e in pf.values()) + " |")
     L += ["", "## Expectation: log space vs linear vs arg-max", "",
           "| head | AbsRel log | AbsRel linear | AbsRel arg-max | RMSE log | RMSE linear | RMSE arg-max | δ1 log | δ1 linear | δ1 arg-max |",
           "|---|---|---|---|---|---|---|---|---|---|"]
