@@ -1,6 +1,7 @@
 """Structure rules of docs/architecture.md, checked on the source (ast, nothing imported):
 
-* no import cycles between mono_map modules (function-level imports included);
+* no import cycles between mono_map modules (function-level imports included), and no module
+  importing a later layer of data -> depth -> mapping -> eval -> viz -> commands;
 * no private name (``_x``, or a ``_x`` module) imported from another module, nor reached as an
   attribute of an imported mono_map module — in mono_map/ (any module, third-party included) and in
   tools/ and tests/ (mono_map modules).
@@ -40,6 +41,28 @@ KNOWN_PRIVATE: set[tuple[str, str]] = {
     ("mono_map/eval/map_metrics.py", "from mono_map.mapping.raycast import TREE_MAX_VAL, _spread_bits"),
     ("mono_map/mapping/octree_io.py", "from mono_map.mapping.raycast import _spread_bits"),
 }
+
+
+# Imports against the one-way flow (see LAYERS) still present, owner in the comment.
+KNOWN_UPWARD: set[tuple[str, str]] = {
+    # depth/evaluate.py drives the depth evaluation from depth/ (lead, depth row)
+    ("mono_map.depth.evaluate", "mono_map.eval.depth_metrics"),
+    ("mono_map.depth.evaluate", "mono_map.eval.hypotheses"),
+    ("mono_map.depth.evaluate", "mono_map.eval.sparsification"),
+    # mapping/table.py is a command living in mapping/ (issue 13 map-pipeline row)
+    ("mono_map.mapping.table", "mono_map.eval.map_metrics"),
+    ("mono_map.mapping.table", "mono_map.mapping.commands"),
+    ("mono_map.mapping.table", "mono_map.viz.plots"),
+}
+
+
+def layer(module: str) -> int:
+    """Position in the one-way flow: base (config, errors, io, paths, progress, geometry) 0, data 1,
+    depth 2, mapping 3, eval 4, viz 5, commands (cli.py, demo.py, */commands.py) 6."""
+    parts = module.split(".")
+    if module in (f"{PACKAGE}.cli", f"{PACKAGE}.demo", f"{PACKAGE}.__main__") or parts[-1] == "commands":
+        return 6
+    return {"data": 1, "depth": 2, "mapping": 3, "eval": 4, "viz": 5}.get(parts[1] if len(parts) > 2 else "", 0)
 
 
 def module_name(path: Path) -> str:
@@ -167,6 +190,16 @@ def test_no_import_cycles_between_modules():
     assert not new, "import cycles: " + "; ".join(" <-> ".join(sorted(c)) for c in new)
     gone = KNOWN_CYCLES - found
     assert not gone, "cycles fixed, delete them from KNOWN_CYCLES: " + "; ".join(" <-> ".join(sorted(c)) for c in gone)
+
+
+def test_imports_follow_the_one_way_flow():
+    """data -> depth -> mapping -> eval, viz and the commands on top: no module imports a later layer."""
+    graph = import_graph()
+    found = {(m, d) for m, deps in graph.items() for d in deps if layer(d) > layer(m)}
+    new = found - KNOWN_UPWARD
+    assert not new, "imports against the flow: " + "; ".join(f"{m} -> {d}" for m, d in sorted(new))
+    gone = KNOWN_UPWARD - found
+    assert not gone, "fixed, delete from KNOWN_UPWARD: " + "; ".join(f"{m} -> {d}" for m, d in sorted(gone))
 
 
 def test_no_private_names_imported_from_other_modules():
