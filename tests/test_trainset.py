@@ -1,5 +1,6 @@
 """Randomised training towns and the memory-mapped training cache."""
 
+import json
 import math
 from dataclasses import replace
 
@@ -106,3 +107,29 @@ def test_subsample_targets_keeps_values():
     dep[0, 0] = math.inf
     out = subsample_targets(dep, 20, np.random.default_rng(0))
     assert (out > 0).sum() == 20 and set(np.unique(out[out > 0])) <= {5.0, math.inf}
+
+
+def test_training_validates_logs_the_curve_and_keeps_the_best(tiny_cache, tmp_path):
+    from functools import partial
+
+    from mono_map.depth.inference import load_checkpoint
+    from mono_map.depth.train import RunConfig, TrainConfig, train
+    from mono_map.eval.validation import validate
+
+    tc = open_trainset(tiny_cache)[0]
+    model = dict(arch="small", head="binary", widths=[8, 8, 8, 8], stem_width=8, spp_width=4,
+                 decoder_widths=[8, 8, 8], num_bins=16, beyond=True)
+    t = TrainConfig(steps=4, batch_size=2, crop=(64, 96), lr=1e-3, threads=1, checkpoint_every=2, log_every=2,
+                    validate_every=2, schedule="cosine", work_dir=str(tmp_path / "w"), output=str(tmp_path / "o.pt"))
+    cfg = RunConfig(name="val", model=model, train=t, source="test")
+    m = cfg.model_config()
+    frames = [frame_target(tc, 0, "lidar", 1)]
+    images = np.stack([np.asarray(tc.image[i]) for i in range(3)])
+    depths = np.stack([frame_target(tc, i, "dense")[1] for i in range(3)]).astype(np.float32)
+    train(cfg, resume=False, data=(images, depths),
+          validator=partial(validate, frames=frames, head=m.head, bins=m.bins, beyond=True))
+    rows = [json.loads(x) for x in (tmp_path / "w" / "val" / "curve.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [2, 4]
+    assert all(0 < r["abs_rel"] < 10 and 0 <= r["sky_beyond_acc"] <= 1 and r["cpu_hours"] > 0 for r in rows), rows
+    _, payload = load_checkpoint(tmp_path / "w" / "val" / "best.pt")
+    assert payload["training"]["validation"]["abs_rel"] == min(r["abs_rel"] for r in rows)

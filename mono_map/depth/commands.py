@@ -95,7 +95,13 @@ def run_train(args) -> int:
     cfg = replace(cfg, train=t, data=data)
     rank, world = dist_env()
     init_distributed(rank, world)
-    train(cfg, resume=not args.no_resume)
+    validator = None
+    if cfg.train.validate_every and rank == 0:
+        from mono_map.eval.validation import validator_for
+
+        m = cfg.model_config()
+        validator = validator_for(cfg.data, m.head, m.bins, m.beyond)
+    train(cfg, resume=not args.no_resume, validator=validator)
     return 0
 
 

@@ -277,51 +277,6 @@ def subsample_targets(dep: np.ndarray, n: int, rng: np.random.Generator) -> np.n
     return out.reshape(dep.shape)
 
 
-def validation_frames(data: DataConfig) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(image, LiDAR target metres with +inf = sky) of the validation town's first frames (every 10th)."""
-    from mono_map.data.synth.trainset import open_trainset
-
-    towns = open_trainset(trainset_root(data), [data.validation_town])
-    if not towns:
-        return []
-    t = towns[0]
-    done = t.done_frames()[::10][:data.validation_frames]
-    return [frame_target(t, int(f), "lidar", 1) for f in done]
-
-
-def validate(model, frames, head, bins, beyond: bool) -> dict:
-    """AbsRel, δ1 and sparsification AUC (ARE, by entropy) against LiDAR within the bin range, and
-    beyond-range accuracy on sky pixels, of ``model`` on full validation frames."""
-    import torch
-
-    from mono_map.depth.heads import decode
-    from mono_map.eval.sparsification import sparsification
-
-    was = model.training
-    model.eval()
-    gts, ds, es, sky_ok, sky_n = [], [], [], 0, 0
-    with torch.inference_mode():
-        for img, dep in frames:
-            H, W = img.shape[:2]
-            Hp, Wp = -(-H // 32) * 32, -(-W // 32) * 32
-            x = np.pad(img, ((0, Hp - H), (0, Wp - W), (0, 0)), mode="edge")
-            x = torch.from_numpy(x).permute(2, 0, 1)[None].float() / 255.0
-            r = decode(head, model(x)[..., :H, :W], bins, "log", beyond=beyond)
-            d, e, pb = r["depth"][0].numpy(), r["entropy"][0].numpy(), r["p_beyond"][0].numpy()
-            m = (dep > 0) & np.isfinite(dep) & (dep <= bins.max_depth)
-            gts.append(dep[m]), ds.append(d[m]), es.append(e[m])
-            sky = np.isinf(dep)
-            sky_ok += int((pb[sky] > 0.5).sum())
-            sky_n += int(sky.sum())
-    model.train(was)
-    gt, d, e = np.concatenate(gts), np.concatenate(ds), np.concatenate(es)
-    ratio = np.maximum(d / gt, gt / d)
-    sp = sparsification(gt, d, e)
-    return {"abs_rel": float(np.mean(np.abs(d - gt) / gt)), "delta1": float(np.mean(ratio < 1.25)),
-            "auc_are": float(sp["auc"]["are"]),
-            "sky_beyond_acc": sky_ok / sky_n if sky_n else None, "frames": len(frames)}
-
-
 # ------------------------------------------------------------------ batches
 def augment_colour(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Godard et al.'s augmentation on an (h,w,3) float image in [0,1]: gamma 0.8-1.2,
@@ -397,10 +352,12 @@ def init_distributed(rank: int, world: int, backend: str | None = None) -> None:
 
 # ------------------------------------------------------------------ training loop
 def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: int | None = None,
-          device: str | None = None, data: tuple | None = None, log=None) -> dict:
+          device: str | None = None, data: tuple | None = None, log=None, validator=None) -> dict:
     """Train per ``cfg``; returns metadata (steps, wall time, final loss, paths).
 
-    ``data`` = (images, depths) skips the cache (tests). With world > 1 the process group must be
+    ``data`` = (images, depths) skips the cache (tests). ``validator(model) -> dict`` (with at least
+    ``abs_rel``; e.g. :func:`mono_map.eval.validation.validator_for`) runs every ``validate_every``
+    steps on rank 0, appends to ``<work>/curve.jsonl`` and keeps the best model as ``best.pt``. With world > 1 the process group must be
     initialised (``init_distributed``); every rank draws its own batches (seed + rank).
     """
     import torch
@@ -443,7 +400,6 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
         images = depths = None
     else:
         images, depths = build_cache(cfg, mcfg)[:2]
-    val = validation_frames(cfg.data) if (cfg.data.trainset and t.validate_every and rank == 0) else []
     if t.channels_last:
         model = model.to(memory_format=torch.channels_last)
     if world > 1:
@@ -490,9 +446,10 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
             log(f"[{cfg.name}] step {done}/{t.steps} loss {np.mean(losses[-t.log_every:]):.4f} lr {lr:.1e} "
                 f"frames {n_frames} elapsed {el/60:.1f} min ETA {eta/60:.1f} min")
         cpu = cpu_before + time.process_time() - c0
-        if rank == 0 and val and (done % t.validate_every == 0 or done == t.steps):
-            v = validate(model, val, model.head, mcfg.bins, mcfg.beyond)
-            v.update(step=done, cpu_hours=round(cpu / 3600, 4), wall_hours=round((wall_before + time.time() - t0) / 3600, 4),
+        if rank == 0 and validator is not None and t.validate_every and (done % t.validate_every == 0
+                                                                           or done == t.steps):
+            v = validator(model)
+            v.update(step=done, cpu_hours=round(cpu / 3600, 6), wall_hours=round((wall_before + time.time() - t0) / 3600, 6),
                      train_frames=n_frames, loss=float(np.mean(losses[-t.log_every:])))
             with open(curve_path, "a") as fh:
                 fh.write(json.dumps(v) + "\n")
