@@ -123,3 +123,11 @@ def test_ddp_two_cpu_processes(tmp_path):
     assert (tmp_path / "out.pt").is_file()
     assert np.isfinite(results[0])
     assert results[0] == pytest.approx(results[1], rel=1e-9, abs=1e-9)
+
+
+def test_bf16_autocast_and_channels_last_train(tmp_path):
+    cfg = _cfg(tmp_path, steps=3, bf16=True, channels_last=True, schedule="cosine")
+    meta = train(cfg, resume=False, data=_data())
+    assert meta["step"] == 3 and np.isfinite(meta["final_loss"])
+    model, _ = load_checkpoint(tmp_path / "out.pt")
+    assert all(p.dtype == torch.float32 for p in model.parameters())   # weights stay fp32

@@ -58,7 +58,8 @@ class TrainConfig:
     work_dir: str = "outputs/train"                  # resumable checkpoints (with optimizer state)
     output: str = ""                                 # final checkpoint ("" -> <work_dir>/<name>/final.pt)
     schedule: str = "step"                           # "step" (x lr_decay at lr_decay_at) or "cosine" (to lr·lr_decay)
-    channels_last: bool = False                      # NHWC memory format (measured ~5 % faster on this CPU)
+    channels_last: bool = False                      # NHWC memory format (2-10 % faster here; with bf16 much more)
+    bf16: bool = False                               # bfloat16 autocast of the forward pass (2x faster with AMX)
     validate_every: int = 0                          # steps between validations (0 = never)
 
 
@@ -431,7 +432,9 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
         x, y = torch.from_numpy(x).to(device), torch.from_numpy(y).to(device)
         if t.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
-        out, tgt = outputs_at_targets(model_ddp(x, upsample=False), y)
+        with torch.autocast(device.split(":")[0], dtype=torch.bfloat16, enabled=t.bf16):
+            low = model_ddp(x, upsample=False)
+        out, tgt = outputs_at_targets(low.float(), y)
         loss = head_loss(model.head, out, tgt, mcfg.bins, beyond=mcfg.beyond, wta_epsilon=mcfg.wta_epsilon)
         opt.zero_grad(set_to_none=True)
         loss.backward()
