@@ -1,10 +1,17 @@
-"""Atomic file output: results appear whole or not at all."""
+"""Atomic file output: results appear whole or not at all, alone or as a set.
+
+Temporary files are ``.<stem>.<pid>.<random>.tmp<suffix>`` beside their target (``mkstemp``: unique
+per process and call, so concurrent writers never share one). A process killed before it could
+remove its temporary files leaves them behind; :func:`clean_stale_temps` removes those whose
+process is gone.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
@@ -18,20 +25,79 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     is given, since some libraries pick the format from it); if the body raises,
     the temporary file is removed and ``path`` is left untouched.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    suffix = path.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{suffix}", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
+    with atomic_outputs(path, suffixes=None if suffix is None else [suffix]) as (tmp_path,):
         yield tmp_path
-        if tmp_path.exists():  # mkstemp makes 0600; give results the mode a plain open() would
-            os.chmod(tmp_path, 0o666 & ~_UMASK)
-        os.replace(tmp_path, path)
+
+
+def temp_path(path: str | os.PathLike, suffix: str | None = None) -> Path:
+    """A new empty temporary file beside ``path``, unique to this process and call (mkstemp)."""
+    path = Path(path)
+    suffix = path.suffix if suffix is None else suffix
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.{os.getpid()}.", suffix=f".tmp{suffix}", dir=path.parent)
+    os.close(fd)
+    return Path(tmp)
+
+
+@contextlib.contextmanager
+def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None) -> Iterator[list[Path]]:
+    """Yield one temporary path per target; on success publish them all, on failure none.
+
+    The targets are renamed in the order given, so a reader that checks the last one (e.g. a
+    map's ``.json`` beside its ``.bt``) sees either the whole set or an incomplete one it
+    ignores; if a rename fails, the targets already renamed are removed again.
+    """
+    targets = [Path(p) for p in paths]
+    temps: list[Path] = []
+    try:
+        for i, target in enumerate(targets):
+            target.parent.mkdir(parents=True, exist_ok=True)
+            temps.append(temp_path(target, None if suffixes is None else suffixes[i]))
+        yield temps
+        done: list[Path] = []
+        try:
+            for tmp, target in zip(temps, targets):
+                if tmp.exists():  # mkstemp makes 0600; give results the mode a plain open() would
+                    os.chmod(tmp, 0o666 & ~_UMASK)
+                os.replace(tmp, target)
+                done.append(target)
+        except BaseException:
+            for target in done:
+                target.unlink(missing_ok=True)
+            raise
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        for tmp in temps:
+            tmp.unlink(missing_ok=True)
+
+
+_TEMP_NAME = re.compile(r"\.(\d+)\.[A-Za-z0-9_]{8}\.tmp[^/]*$")  # .<stem>.<pid>.<mkstemp's 8>.tmp<suffix>
+
+
+def clean_stale_temps(directory: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files (see the module doc) in ``directory`` whose writing process is gone."""
+    removed = []
+    directory = Path(directory)
+    if not directory.is_dir():
+        return removed
+    for p in directory.glob(".*.tmp*"):
+        m = _TEMP_NAME.search(p.name)
+        if m is None or not p.is_file() or _alive(int(m.group(1))):
+            continue
+        try:
+            p.unlink()
+            removed.append(p)
+        except OSError:
+            pass
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
 
 def prepare_output_dir(path: str | os.PathLike) -> Path:
@@ -45,6 +111,37 @@ def prepare_output_dir(path: str | os.PathLike) -> Path:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise MonoMapError(f"--out: {path}: cannot create the directory ({exc.strerror})") from None
+    check_writable_dir(path, "--out")
+    clean_stale_temps(path)
+    return path
+
+
+def check_writable_dir(path: str | os.PathLike, option: str) -> None:
+    """MonoMapError unless a file can be created in directory ``path`` (tried, then removed)."""
+    from mono_map.errors import MonoMapError
+
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".probe.{os.getpid()}.", suffix=".tmp", dir=path)
+    except OSError as exc:
+        raise MonoMapError(f"{option}: {path}: cannot write there ({exc.strerror})") from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
+def check_output_file(path: str | os.PathLike, option: str, suffix: str | None = None) -> Path:
+    """Check an output file option before any work: not a directory, the right suffix, a writable folder."""
+    from mono_map.errors import MonoMapError
+
+    path = Path(path)
+    if suffix is not None and path.suffix.lower() != suffix:
+        raise MonoMapError(f"{option}: {path}: the file name must end in {suffix}")
+    if path.is_dir():
+        raise MonoMapError(f"{option}: {path} is a directory, not a file")
+    parent = path.parent
+    if parent.exists() and not parent.is_dir():
+        raise MonoMapError(f"{option}: {parent} is a file, not a directory")
+    if parent.exists():
+        check_writable_dir(parent, option)
     return path
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from mono_map.frames import FrameSelection, parse_frames
+
 SHIPPED_HEADS = ("binary", "softmax", "gaussian", "ordinal")
 
 
@@ -25,7 +27,8 @@ def register(subparsers) -> None:
     src.add_argument("--seq", help="sequence name under the data root (e.g. 00)")
     src.add_argument("--images", help="folder of .png/.jpg images")
     p.add_argument("--data-root", default=None)
-    p.add_argument("--frames", default=None, help="frame selection start:stop[:step] or a comma list (sequences)")
+    p.add_argument("--frames", default=None,
+                   help="with --seq: N (the first N), A:B[:S], I,J,... or 'all' (default all)")
     p.add_argument("--model", default=None, help="checkpoint path or shipped head name (default: binary)")
     p.add_argument("--out", default="outputs/predict", help="output folder")
     p.add_argument("--npz", action="store_true", help="also save the K×h×w distributions (float16, model resolution)")
@@ -35,7 +38,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("eval-depth", help="depth metrics, uncertainty AUCs, oracle hypotheses of the heads")
     p.add_argument("--seq", default="00", help="evaluation sequence (default 00, the held-out town)")
     p.add_argument("--data-root", default=None)
-    p.add_argument("--frames", default="0:500:10", help="start:stop[:step] or comma list (default 0:500:10)")
+    p.add_argument("--frames", default=None,
+                   help="N (the first N), A:B[:S], I,J,... or 'all' (default 0:500:10, fewer in a shorter sequence)")
     p.add_argument("--model", action="append", default=None,
                    help="checkpoint path or shipped head name; repeat for several (default: all shipped)")
     p.add_argument("--gt", choices=("lidar", "dense"), default="lidar", help="ground truth: projected LiDAR or dense depth_2")
@@ -48,33 +52,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_eval_depth)
 
 
-def parse_frames(spec: str | None, n: int, option: str = "--frames") -> list[int]:
-    """'a:b[:c]' (Python slice) or '1,5,9' -> frame indices within [0, n)."""
-    from mono_map.errors import MonoMapError
-
-    if not spec:
-        return list(range(n))
-    try:
-        if ":" in spec:
-            parts = [int(x) if x else None for x in spec.split(":")]
-            idx = list(range(n))[slice(*parts)]
-        else:
-            idx = [int(x) for x in spec.split(",")]
-    except ValueError:
-        raise MonoMapError(f"{option}: cannot parse {spec!r} (use start:stop[:step] or a comma list)") from None
-    bad = [i for i in idx if not 0 <= i < n]
-    if bad or not idx:
-        raise MonoMapError(f"{option}: frames {bad[:5] or spec} outside the sequence's 0..{n - 1}")
-    return idx
-
-
-def _frame_stop(spec: str | None) -> int | None:
-    if spec and ":" in spec:
-        parts = spec.split(":")
-        return int(parts[1]) if len(parts) > 1 and parts[1] else None
-    if spec:
-        return max(int(x) for x in spec.split(",")) + 1
-    return None
+EVAL_FRAMES = FrameSelection("0:500:10", stop=500, step=10, up_to=True)  # eval-depth's default
 
 
 def run_train(args) -> int:
@@ -115,13 +93,20 @@ def run_predict(args) -> int:
     from mono_map.io import atomic_path
     from mono_map.progress import progress
 
-    pred = DepthPredictor.load(args.model, space=args.space)
-    out = Path(args.out)
-    if args.seq:
-        from mono_map.data.kitti import open_sequence
+    from mono_map.io import prepare_output_dir
 
-        seq = open_sequence(args.data_root, args.seq, frames=_frame_stop(args.frames))
-        idx = parse_frames(args.frames, len(seq))
+    if args.images and args.frames is not None:
+        raise MonoMapError("--frames: selects frames of a --seq, not of an --images folder")
+    selection = parse_frames(args.frames)
+    if args.images and not Path(args.images).is_dir():
+        raise MonoMapError(f"--images: {args.images}: no such folder")
+    out = prepare_output_dir(args.out)
+    pred = DepthPredictor.load(args.model, space=args.space)
+    if args.seq:
+        from mono_map.data.prepare import prepare_sequence
+
+        seq = prepare_sequence(args.data_root, args.seq, selection)
+        idx = selection.resolve(len(seq))
         items = [(f"{i:06d}", (lambda i=i: seq.image(i))) for i in idx]
     else:
         from mono_map.data.kitti import read_image_rgb
@@ -178,6 +163,14 @@ def run_eval_depth(args) -> int:
     from mono_map.errors import MonoMapError
     from mono_map.io import write_json_atomic, write_text_atomic
 
+    from mono_map.io import prepare_output_dir
+
+    selection = parse_frames(args.frames, default=EVAL_FRAMES)
+    if args.cap <= 0 or args.cap != args.cap:
+        raise MonoMapError(f"--cap: must be a positive depth in metres, got {args.cap}")
+    if args.kitti_object and not Path(args.kitti_object).is_dir():
+        raise MonoMapError(f"--kitti-object: {args.kitti_object}: no such folder")
+    prepare_output_dir(args.out)
     torch.set_num_threads(max(1, args.threads))
     predictors = {}
     for m in _models(args):
@@ -189,10 +182,10 @@ def run_eval_depth(args) -> int:
         make = lambda: iter(frames)  # noqa: E731
         n, title, where = len(frames), f"Depth evaluation on real KITTI object frames ({args.kitti_object})", "object"
     else:
-        from mono_map.data.kitti import open_sequence
+        from mono_map.data.prepare import prepare_sequence
 
-        seq = open_sequence(args.data_root, args.seq, frames=_frame_stop(args.frames))
-        idx = parse_frames(args.frames, len(seq))
+        seq = prepare_sequence(args.data_root, args.seq, selection)
+        idx = selection.resolve(len(seq))
 
         def make():
             for i in idx:
@@ -202,7 +195,7 @@ def run_eval_depth(args) -> int:
                 yield f"{i:06d}", seq.image(i), gt
 
         n, where = len(idx), f"seq{args.seq}"
-        title = (f"Depth evaluation on sequence {args.seq} (frames {args.frames}, ground truth: {args.gt}"
+        title = (f"Depth evaluation on sequence {args.seq} ({selection.describe(idx)}, ground truth: {args.gt}"
                  f"{', Garg crop' if args.garg_crop else ''}, cap {args.cap:g} m)")
     results = {h: evaluate_model(p, make(), n, cap=args.cap, garg_crop=args.garg_crop, desc=f"eval {h}")
                for h, p in predictors.items()}

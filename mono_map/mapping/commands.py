@@ -17,8 +17,8 @@ def _add_octomap_args(p: argparse.ArgumentParser) -> None:
     d = OctoMapConfig()
     g = p.add_argument_group("OctoMap (defaults are OctoMap's own)")
     g.add_argument("--res", type=float, default=d.resolution, help=f"cell size, metres (default {d.resolution})")
-    g.add_argument("--max-range", type=float, default=d.max_range,
-                   help="rays longer than this are cut and mark free space only (metres; default: unlimited)")
+    g.add_argument("--max-range", type=float, default=None,
+                   help="rays longer than this are cut and mark free space only (metres, > 0; default: unlimited)")
     g.add_argument("--prob-hit", type=float, default=d.prob_hit, help=f"default {d.prob_hit}")
     g.add_argument("--prob-miss", type=float, default=d.prob_miss, help=f"default {d.prob_miss}")
     g.add_argument("--clamp-min", type=float, default=d.clamp_min, help=f"default {d.clamp_min}")
@@ -37,7 +37,7 @@ def register(subparsers) -> None:
     _add_octomap_args(b)
     b.add_argument("--stride", type=int, default=1, help="use every S-th pixel row and column (default 1)")
     b.add_argument("--frames", default=None,
-                   help="a:b, n (first n) or 'all' (default: the first 500 frames)")
+                   help="N (the first N), A:B[:S], I,J,... or 'all' (default: the first 500 frames)")
     b.add_argument("--model", default=None,
                    help="depth checkpoint (default: the shipped binary model); 'oracle' = noisy ground truth "
                         "(synthetic sequences only, for development)")
@@ -73,14 +73,205 @@ def register(subparsers) -> None:
 
 
 def octomap_config(args):
-    from mono_map.config import OctoMapConfig
+    """The OctoMap settings of the options, checked (MonoMapError naming the option)."""
+    import math
 
-    return OctoMapConfig(resolution=args.res, prob_hit=args.prob_hit, prob_miss=args.prob_miss,
-                         clamp_min=args.clamp_min, clamp_max=args.clamp_max, max_range=args.max_range)
+    from mono_map.config import OctoMapConfig
+    from mono_map.errors import MonoMapError
+    from mono_map.mapping.integrate import validate_octomap_config
+
+    if args.max_range is not None and not (math.isfinite(args.max_range) and args.max_range > 0):
+        raise MonoMapError(f"--max-range: must be a positive number of metres, got {args.max_range} "
+                           "(leave it out for unlimited rays)")
+    if math.isfinite(args.res) and args.res > MAX_RESOLUTION:
+        raise MonoMapError(f"--res: {args.res:g} m cells are coarser than this tool supports "
+                           f"(<= {MAX_RESOLUTION:g} m; a street is about 20 m wide)")
+    cfg = OctoMapConfig(resolution=args.res, prob_hit=args.prob_hit, prob_miss=args.prob_miss,
+                        clamp_min=args.clamp_min, clamp_max=args.clamp_max,
+                        max_range=-1.0 if args.max_range is None else float(args.max_range))
+    validate_octomap_config(cfg)
+    return cfg
+
+
+MAX_RESOLUTION = 10.0            # metres
+
+
+def check_name(name: str | None) -> str | None:
+    """``--name``: a plain file stem, so every output stays inside ``--out``."""
+    from mono_map.errors import MonoMapError
+
+    if name is None:
+        return None
+    if not name or name in (".", "..") or "/" in name or "\\" in name or name.startswith(".") or "\0" in name:
+        raise MonoMapError(f"--name: {name!r} must be a plain file name (no '/', not starting with '.'), "
+                           "so the outputs stay inside --out")
+    return name
+
+
+def checkpoint_path(model: str | None) -> Path | None:
+    """The checkpoint file ``--model`` names (None: the shipped binary model; a bare head name: its
+    shipped checkpoint; 'oracle': none); MonoMapError if it does not exist."""
+    from mono_map.depth.inference import default_checkpoint
+    from mono_map.errors import MonoMapError
+
+    if model == "oracle":
+        return None
+    if model is None:
+        path = default_checkpoint("binary")
+    elif not Path(model).suffix and not Path(model).exists():
+        path = default_checkpoint(str(model))
+    else:
+        path = Path(model)
+    if not path.is_file():
+        raise MonoMapError(f"--model: {model}: checkpoint not found")
+    return path
+
+
+def model_digest(model: str | None) -> str:
+    """What identifies the depth model: sha256 of its checkpoint file (first 16 hex), or 'oracle'."""
+    import hashlib
+
+    path = checkpoint_path(model)
+    if path is None:
+        return "oracle"
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
+def job_key(seq, source: str, keep: float, cfg, frames, stride: int, model: str | None,
+            digest: str | None = None) -> dict:
+    """Everything that determines a map: stored in its .json, compared before a map is reused."""
+    import dataclasses
+
+    from mono_map.frames import frames_tag
+
+    marker = {}
+    if seq is not None and (seq.path / "synth.json").is_file():
+        import json
+
+        try:
+            info = json.loads((seq.path / "synth.json").read_text())
+            marker = {k: info.get(k) for k in ("recipe_hash", "generator_version", "n_frames")}
+        except (ValueError, UnicodeDecodeError):
+            marker = {}
+    mono = source == "mono"
+    return {"data_root": str(Path(seq.root).resolve()) if seq is not None else None,
+            "sequence": getattr(seq, "name", None), "synthetic": marker or None,
+            "source": source, "keep": float(keep) if mono else None, "stride": int(stride) if mono else None,
+            "model": (digest or model_digest(model)) if mono else None,
+            "frames": frames_tag(frames), "octomap": dataclasses.asdict(cfg), "integration": "batched"}
+
+
+def read_map_sidecar(path: Path) -> dict | None:
+    """The ``.json`` a build wrote beside ``<name>.bt``: {"stats", "job", ...}; None if absent;
+    MonoMapError naming it if it is not one."""
+    import json
+
+    from mono_map.errors import MonoMapError
+
+    side = Path(path).with_suffix(".json")
+    if not side.is_file():
+        return None
+    try:
+        data = json.loads(side.read_text())
+    except (ValueError, UnicodeDecodeError, OSError) as exc:
+        raise MonoMapError(f"{side}: unreadable map statistics ({exc.__class__.__name__}); "
+                           "delete it or rebuild the map") from None
+    if not isinstance(data, dict) or not isinstance(data.get("stats"), dict):
+        raise MonoMapError(f"{side}: not a mono-map build's statistics (no 'stats' object); "
+                           "delete it or rebuild the map")
+    return data
+
+
+def reusable(bt: Path, job: dict) -> tuple[bool, str]:
+    """Whether ``bt`` (with its .json) was built by exactly ``job``; (False, why) otherwise."""
+    from mono_map.errors import MonoMapError
+
+    if not bt.is_file():
+        return False, "not built yet"
+    try:
+        side = read_map_sidecar(bt)
+    except MonoMapError as exc:
+        return False, str(exc)
+    if side is None:
+        return False, f"{bt.with_suffix('.json').name} missing"
+    if side.get("job") != job:
+        stored = side.get("job") or {}
+        diff = sorted(k for k in set(job) | set(stored) if job.get(k) != stored.get(k))
+        return False, f"built with other {', '.join(diff) or 'settings'}"
+    if side["stats"].get("bt_bytes") not in (None, bt.stat().st_size):
+        return False, f"{bt.name} does not match its .json"
+    return True, ""
+
+
+def memory_limit() -> tuple[float, str]:
+    """Bytes a build may use, and where the figure comes from: ``$MONO_MAP_MEMORY_GB``, else the
+    smaller of the available RAM (/proc/meminfo) and the address-space limit (ulimit -v)."""
+    import os
+    import resource
+
+    env = os.environ.get("MONO_MAP_MEMORY_GB")
+    if env:
+        try:
+            return float(env) * 2**30, "$MONO_MAP_MEMORY_GB"
+        except ValueError:
+            from mono_map.errors import MonoMapError
+
+            raise MonoMapError(f"$MONO_MAP_MEMORY_GB: expected a number of GB, got {env!r}") from None
+    limit, where = float("inf"), "no limit known"
+    try:
+        for line in open("/proc/meminfo"):
+            if line.startswith("MemAvailable:"):
+                limit, where = float(line.split()[1]) * 1024, "available RAM"
+    except OSError:
+        pass
+    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if soft != resource.RLIM_INFINITY and soft < limit:
+        limit, where = float(soft), "ulimit -v"
+    return limit, where
+
+
+# Peak memory of one frame's integration, measured on tiny frame 0 (peak RSS above the start-up):
+# LiDAR ≈ 90 B per ray-cell visit (0.05 m: 22 M visits, 1.9 GB); mono (shipped model, keep 0.8,
+# 1241×376) ≈ 150 MB at 0.2 m, growing as (0.2 / res)^2.5 (0.1 m: 0.58 GB, 0.05 m: 3.3 GB).
+BYTES_PER_VISIT = 90
+MONO_BYTES_AT_02 = 150e6
+
+
+def estimate_frame_bytes(seq, i: int, source: str, cfg, stride: int, keep: float) -> float:
+    """Peak bytes to integrate frame ``i`` alone (see the constants above; an estimate, not a bound)."""
+    import numpy as np
+
+    if source == "mono":
+        h, w = seq.image_size
+        pixels = (-(-h // stride)) * (-(-w // stride)) * keep
+        return MONO_BYTES_AT_02 * (0.2 / cfg.resolution) ** 2.5 * pixels / (376 * 1241 * 0.8)
+    from mono_map.mapping.reference import lidar_measurement
+
+    pts, origin = lidar_measurement(seq, i, source)
+    lengths = np.linalg.norm(pts - origin, axis=1)
+    if cfg.max_range > 0:
+        lengths = np.minimum(lengths, cfg.max_range)
+    return float(np.sum(lengths / cfg.resolution + 1)) * BYTES_PER_VISIT
+
+
+def check_memory(seq, frames, source: str, cfg, stride: int, keep: float) -> None:
+    """Refuse, before building, settings whose first frame alone would not fit in memory."""
+    from mono_map.errors import MonoMapError
+
+    need = estimate_frame_bytes(seq, frames[0], source, cfg, stride, keep)
+    limit, where = memory_limit()
+    if need > limit:
+        raise MonoMapError(f"--res: {cfg.resolution:g} m cells: integrating frame {frames[0]} alone would need about "
+                           f"{need / 2**30:.1f} GB, more than the {limit / 2**30:.1f} GB allowed ({where}); "
+                           "use a coarser --res, a --max-range or a larger --stride")
 
 
 def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model: str | None) -> str:
-    """A file stem that encodes every parameter changing the map (used as the cache key)."""
+    """A file stem that encodes every parameter changing the map (the .json's job key decides reuse)."""
     from mono_map.config import OctoMapConfig
 
     parts = [source if source != "mono" else f"mono-keep{keep:g}"]
@@ -100,161 +291,227 @@ def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model
     return "_".join(parts)
 
 
-def _frames_tag(frames: range) -> str:
-    return f"f{frames.start}-{frames.stop}"
+def build_and_write(seq, source: str, keep: float, cfg, frames, stride: int, model: str | None,
+                    out_dir: Path, name: str | None = None, observers=(), show_progress: bool = True,
+                    predictor=None, rrd: Path | None = None, logger=None, digest: str | None = None
+                    ) -> tuple[Path, dict]:
+    """Build one map and publish ``<name>.bt``, ``<name>.json`` (and ``rrd``) together; (bt path, stats).
 
-
-def build_and_write(seq, source: str, keep: float, cfg, frames: range, stride: int, model: str | None,
-                    out_dir: Path, name: str | None = None, observers=(), show_progress: bool = True) -> tuple[Path, dict]:
-    """Build one map and write ``<name>.bt`` + ``<name>.json`` atomically; returns (bt path, stats)."""
-    from mono_map.io import write_json_atomic
+    ``logger(rrd_path)`` makes the recording observer, given the temporary path the recording is
+    written to (renamed with the map only if the whole build succeeds). Nothing is published
+    if the build fails.
+    """
+    from mono_map.frames import frames_tag
+    from mono_map.io import atomic_outputs, write_json_atomic
     from mono_map.mapping.build import build_map, load_predictor, write_tree_bt
 
-    predictor = load_predictor(model) if source == "mono" else None
-    name = name or map_stem(source, keep, cfg, _frames_tag(frames), stride, model)
-    result = build_map(seq, source=source, keep=keep, frames=frames, octomap=cfg, stride=stride,
-                       predictor=predictor, observers=observers, show_progress=show_progress)
-    stats = dict(result.stats)
-    stats["model"] = (model or "shipped binary checkpoint") if source == "mono" else None
+    frames = list(frames)
+    job = job_key(seq, source, keep, cfg, frames, stride, model, digest)
+    if source == "mono" and predictor is None:
+        predictor = load_predictor(model)
+    name = name or map_stem(source, keep, cfg, frames_tag(frames), stride, model)
     bt = out_dir / f"{name}.bt"
-    write_tree_bt(result.tree, bt)
-    stats["bt"] = str(bt)
-    stats["bt_bytes"] = bt.stat().st_size
-    write_json_atomic(out_dir / f"{name}.json", {"stats": stats, "per_frame": result.per_frame})
+    targets = [bt] + ([Path(rrd)] if rrd is not None else []) + [bt.with_suffix(".json")]
+    with atomic_outputs(*targets) as temps:
+        observers = list(observers)
+        if rrd is not None:
+            observers.append(logger(temps[1]))
+        result = build_map(seq, source=source, keep=keep, frames=frames, octomap=cfg, stride=stride,
+                           predictor=predictor, observers=observers, show_progress=show_progress)
+        stats = dict(result.stats)
+        stats["model"] = (model or "shipped binary checkpoint") if source == "mono" else None
+        if frames != list(range(frames[0], frames[-1] + 1)):
+            stats["frame_indices"] = frames
+        write_tree_bt(result.tree, temps[0])
+        stats["bt"] = str(bt)
+        stats["bt_bytes"] = temps[0].stat().st_size
+        write_json_atomic(temps[-1], {"stats": stats, "job": job, "per_frame": result.per_frame})
     return bt, stats
 
 
+DEFAULT_FRAMES = 500  # build and eval: the first 500 frames unless --frames says otherwise
+
+
 def run_build(args) -> int:
-    from mono_map.data.kitti import open_sequence
+    from mono_map.data.prepare import check_data_root, prepare_sequence
     from mono_map.errors import MonoMapError
-    from mono_map.mapping.build import SOURCES as BUILD_SOURCES, parse_frames
-    from mono_map.mapping.integrate import validate_octomap_config
+    from mono_map.frames import first_frames, parse_frames
+    from mono_map.io import check_output_file
+    from mono_map.mapping.build import SOURCES as BUILD_SOURCES, load_predictor
     from mono_map.mapping.select import check_keep
 
+    # every option first: nothing is opened, rendered or written before they all pass
     if args.source not in BUILD_SOURCES:
         raise MonoMapError(f"--source: unknown source {args.source!r} (choose from {', '.join(BUILD_SOURCES)})")
     if args.source == "mono":
         check_keep(args.keep)
-        if args.model not in (None, "oracle") and not Path(args.model).exists() and Path(args.model).suffix:
-            raise MonoMapError(f"{args.model}: checkpoint not found")
+        checkpoint_path(args.model)
     if args.stride < 1:
         raise MonoMapError(f"--stride: must be a positive integer, got {args.stride}")
     cfg = octomap_config(args)
-    validate_octomap_config(cfg)
+    selection = parse_frames(args.frames, default=first_frames(DEFAULT_FRAMES))
+    check_name(args.name)
+    rrd = check_output_file(args.rrd, "--rrd", ".rrd") if args.rrd else None
+    if args.reference_map is not None and not Path(args.reference_map).is_file():
+        raise MonoMapError(f"--reference-map: {args.reference_map}: no such file")
+    check_data_root(args.data_root)
     out_dir = prepare_output_dir(sequence_output_dir(args.out, args.seq))
-    seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))
-    frames, desc = parse_frames(args.frames, len(seq))
-    print(f"mono-map build: sequence {args.seq}, {desc}, source {args.source}"
-          + (f", keep {args.keep:g}" if args.source == "mono" else "") + f", {cfg.resolution:g} m cells")
+    predictor = load_predictor(args.model) if args.source == "mono" else None  # a bad checkpoint fails here
+    digest = model_digest(args.model) if args.source == "mono" else None
+    # then the data
+    seq = prepare_sequence(args.data_root, args.seq, selection)
+    frames = selection.resolve(len(seq))
+    check_memory(seq, frames, args.source, cfg, args.stride, args.keep)
+    print(f"mono-map build: sequence {args.seq}, {selection.describe(frames)}, source {args.source}"
+          + (f", keep {args.keep:g}" if args.source == "mono" else "") + f", {cfg.resolution:g} m cells", flush=True)
+    logger = None
     observers = []
-    if args.viewer or args.rrd:
+    if rrd is not None or args.viewer:
         from mono_map.viz.rerun_stream import RerunMapLogger
 
-        observers.append(RerunMapLogger(rrd=args.rrd, spawn=args.viewer, reference_map=args.reference_map,
-                                        resolution=cfg.resolution, image_size=seq.image_size))
+        def logger(path=None):
+            return RerunMapLogger(rrd=path, spawn=args.viewer, reference_map=args.reference_map,
+                                  resolution=cfg.resolution, image_size=seq.image_size)
+        if rrd is None:
+            observers.append(logger())
     bt, stats = build_and_write(seq, args.source, args.keep, cfg, frames, args.stride, args.model, out_dir,
-                                name=args.name, observers=observers)
-    print(f"wrote {bt} ({stats['bt_bytes'] / 2**20:.1f} MB on disk) and {bt.with_suffix('.json')}")
+                                name=args.name, observers=observers, predictor=predictor, rrd=rrd,
+                                logger=logger, digest=digest)
+    print(f"wrote {bt} ({stats['bt_bytes'] / 2**20:.1f} MB on disk) and {bt.with_suffix('.json')}"
+          + (f" and {rrd}" if rrd is not None else ""))
     print(f"  frames {stats['n_frames']}, points kept {stats['points_kept']:,}, rays cast {stats['rays_cast']:,}, "
           f"leaves {stats['leaf_count']:,}, memory {stats['memory_mb']:.1f} MB (OctoMap memoryUsage), "
           f"{stats['wall_s']:.1f} s = {stats['frames_per_s']:.2f} frames/s")
     return 0
 
 
-def _frames_needed(spec: str | None) -> int | None:
-    """How many frames a synthetic sequence must have for --frames (None = all / unknown)."""
-    from mono_map.mapping.build import DEFAULT_FRAMES
-
-    if spec is None:
-        return DEFAULT_FRAMES
-    s = str(spec).strip()
-    if s == "all":
-        return None
-    try:
-        return int(s.split(":", 1)[1]) if ":" in s and s.split(":", 1)[1].strip() else (None if ":" in s else int(s))
-    except ValueError:
-        return None
-
-
-def reference_path(args, seq, cfg, frames: range, out_dir: Path) -> Path:
-    """The reference .bt: a path, or the cached LiDAR(-FOV) map of the sequence (built if missing)."""
+def reference_path(args, seq, cfg, frames, out_dir: Path) -> Path:
+    """The reference .bt: a path, or the LiDAR(-FOV) map of the sequence (built if missing or stale)."""
     from mono_map.errors import MonoMapError
+    from mono_map.frames import frames_tag
 
     ref = args.reference
     if ref in ("lidar", "lidar-fov"):
-        stem = map_stem(ref, 1.0, cfg, _frames_tag(frames), 1, None)
+        stem = map_stem(ref, 1.0, cfg, frames_tag(frames), 1, None)
         bt = out_dir / f"{stem}.bt"
-        if not bt.exists():
-            print(f"building the {ref} reference map ({bt})")
+        ok, why = reusable(bt, job_key(seq, ref, 1.0, cfg, frames, 1, None))
+        if not ok:
+            print(f"building the {ref} reference map ({bt}: {why})", flush=True)
             build_and_write(seq, ref, 1.0, cfg, frames, 1, None, out_dir)
         return bt
     path = Path(ref)
-    if not path.exists():
+    if not path.is_file():
         raise MonoMapError(f"--reference: {ref} is neither lidar, lidar-fov nor an existing .bt file")
     return path
 
 
-def default_map_path(args) -> Path:
-    """The .bt ``mono-map build --seq SEQ --keep KEEP`` (same --frames/--stride/--model/--out/OctoMap
-    options) writes; MonoMapError if it is not there yet."""
-    from mono_map.data.kitti import open_sequence
+def check_eval_options(args):
+    """eval's options, checked before any data or map is read: (OctoMap config, frame selection)."""
     from mono_map.errors import MonoMapError
-    from mono_map.mapping.build import parse_frames
+    from mono_map.frames import first_frames, parse_frames
+    from mono_map.io import check_output_file
     from mono_map.mapping.select import check_keep
 
     check_keep(args.keep)
     cfg = octomap_config(args)
-    seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames), generate=False)
-    frames, _ = parse_frames(args.frames, len(seq))
+    selection = parse_frames(args.frames, default=first_frames(DEFAULT_FRAMES))
+    if args.stride < 1:
+        raise MonoMapError(f"--stride: must be a positive integer, got {args.stride}")
+    checkpoint_path(args.model)
+    if args.json:
+        check_output_file(args.json, "--json", ".json")
+    if args.map is not None and not Path(args.map).is_file():
+        raise MonoMapError(f"--map: {args.map}: map file not found")
+    if args.table:
+        parse_keeps(args.keeps)
+    if args.reference not in ("lidar", "lidar-fov") and not Path(args.reference).is_file():
+        raise MonoMapError(f"--reference: {args.reference} is neither lidar, lidar-fov nor an existing .bt file")
+    return cfg, selection
+
+
+def default_map_path(args, cfg, selection) -> Path:
+    """The .bt ``mono-map build --seq SEQ --keep KEEP`` (same --frames/--stride/--model/--out/OctoMap
+    options) writes; MonoMapError if it is not there yet or was built from other data or another model."""
+    from mono_map.data.prepare import prepare_sequence
+    from mono_map.errors import MonoMapError
+    from mono_map.frames import frames_tag
+
+    seq = prepare_sequence(args.data_root, args.seq, selection, render=False)
+    frames = selection.resolve(len(seq))
     out_dir = sequence_output_dir(args.out, args.seq)
-    path = out_dir / f"{map_stem('mono', args.keep, cfg, _frames_tag(frames), args.stride, args.model)}.bt"
+    path = out_dir / f"{map_stem('mono', args.keep, cfg, frames_tag(frames), args.stride, args.model)}.bt"
     if not path.is_file():
         raise MonoMapError(f"--map: none given, and {path} does not exist yet "
                            f"(build it: mono-map build --seq {args.seq} --keep {args.keep:g}, or pass --map)")
+    ok, why = reusable(path, job_key(seq, "mono", args.keep, cfg, frames, args.stride, args.model))
+    if not ok:
+        raise MonoMapError(f"--map: none given, and {path} is stale ({why}); rebuild it with mono-map build "
+                           f"--seq {args.seq} --keep {args.keep:g}, or pass --map")
     print(f"scoring {path}")
     return path
+
+
+def parse_keeps(text: str) -> tuple[float, ...]:
+    """``--keeps`` "0.3,0.5" → the sorted keeps, with 0.8 and 1.0 (the table's rows) always in."""
+    import math
+
+    from mono_map.errors import MonoMapError
+
+    try:
+        keeps = {float(k) for k in text.split(",") if k.strip()}
+    except ValueError:
+        raise MonoMapError(f"--keeps: expected comma-separated numbers, got {text!r}") from None
+    for k in keeps:
+        if not (math.isfinite(k) and 0 < k <= 1):
+            raise MonoMapError(f"--keeps: {k} is outside (0, 1]")
+    return tuple(sorted(keeps | {0.8, 1.0}))
 
 
 def run_eval(args) -> int:
     from mono_map.errors import MonoMapError
 
+    cfg, selection = check_eval_options(args)
     if args.table:
-        from mono_map.mapping.table import run_table
+        from mono_map.mapping.table import TableJob, run_table
 
-        return run_table(args)
-    if not args.map:
-        args.map = str(default_map_path(args))
-    import json
-
-    from mono_map.data.kitti import open_sequence
+        if args.reference not in ("lidar", "lidar-fov"):
+            raise MonoMapError(f"--reference: the table is scored against 'lidar-fov' or 'lidar', "
+                               f"not {args.reference!r}")
+        return run_table(TableJob(seq=args.seq, data_root=args.data_root, frames=selection, out=args.out,
+                                  keeps=parse_keeps(args.keeps), stride=args.stride, model=args.model,
+                                  octomap=cfg, reference=args.reference))
+    from mono_map.data.prepare import prepare_sequence
     from mono_map.eval.map_metrics import evaluate_map, load_tree
     from mono_map.io import write_json_atomic
-    from mono_map.mapping.build import parse_frames
 
-    map_path = Path(args.map)
+    map_path = Path(args.map) if args.map else default_map_path(args, cfg, selection)
+    side = read_map_sidecar(map_path)  # a corrupt sidecar is refused before any scoring
     tree = load_tree(map_path)
     if args.reference in ("lidar", "lidar-fov"):
-        cfg = octomap_config(args)
         # the reference is built with the map's resolution and frames (from the map's stats JSON if present)
-        side = map_path.with_suffix(".json")
-        meta = json.loads(side.read_text())["stats"] if side.exists() else {}
+        meta = side["stats"] if side else {}
         cfg = cfg.__class__(**{**cfg.__dict__, "resolution": float(tree.getResolution())})
-        seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))
-        if meta.get("frames") and args.frames is None:
-            frames = range(*meta["frames"])
+        out_dir = prepare_output_dir(Path(args.out) if args.out else map_path.parent)
+        seq = prepare_sequence(args.data_root, args.seq, selection if args.frames is not None else None)
+        if args.frames is None and isinstance(meta.get("frame_indices"), list):
+            frames = [int(i) for i in meta["frame_indices"]]
+        elif args.frames is None and isinstance(meta.get("frames"), list) and len(meta["frames"]) == 2:
+            frames = list(range(*[int(x) for x in meta["frames"]]))
         else:
-            frames, _ = parse_frames(args.frames, len(seq))
-        out_dir = Path(args.out) if args.out else map_path.parent
+            frames = selection.resolve(len(seq))
+        if frames and frames[-1] >= len(seq):
+            from mono_map.errors import MonoMapError
+
+            raise MonoMapError(f"{map_path}: built from frames up to {frames[-1]}, sequence {args.seq} has {len(seq)}")
         ref_path = reference_path(args, seq, cfg, frames, out_dir)
     else:
-        ref_path = reference_path(args, None, None, range(0), Path("."))
+        ref_path = reference_path(args, None, None, [], Path("."))
     ref = load_tree(ref_path)
     metrics = evaluate_map(tree, ref)
     metrics["map_path"] = str(map_path)
     metrics["reference_path"] = str(ref_path)
-    side = map_path.with_suffix(".json")
-    if side.exists():
-        metrics["build"] = json.loads(side.read_text()).get("stats", {})
+    if side:
+        metrics["build"] = side["stats"]
     print(format_metrics(metrics))
     if args.json:
         write_json_atomic(args.json, metrics)

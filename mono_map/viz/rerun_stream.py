@@ -365,7 +365,9 @@ class RerunMapLogger:
         if self.rrd is not None:
             self.rrd.parent.mkdir(parents=True, exist_ok=True)
             # Written beside the target and renamed on close(): the .rrd appears whole or not at all.
-            self._tmp_rrd = self.rrd.with_name(f".{self.rrd.name}.tmp")
+            from mono_map.io import temp_path
+
+            self._tmp_rrd = temp_path(self.rrd)  # unique per process: concurrent builds never share it
             sinks.append(rr.FileSink(str(self._tmp_rrd)))
         if spawn:
             sinks.append(spawn_viewer())
@@ -618,7 +620,9 @@ def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool =
     if rrd is not None:
         rrd = Path(rrd)
         rrd.parent.mkdir(parents=True, exist_ok=True)
-        tmp = rrd.with_name(f".{rrd.name}.tmp")
+        from mono_map.io import temp_path
+
+        tmp = temp_path(rrd)
         sinks.append(rr.FileSink(str(tmp)))
     if spawn:
         sinks.append(spawn_viewer())
