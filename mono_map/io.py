@@ -48,9 +48,11 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
     """
     targets = [Path(p) for p in paths]
     temps: list[Path] = []
+    created: list[Path] = []  # folders made here, removed again (if empty) when nothing is published
+    published = False
     try:
         for i, target in enumerate(targets):
-            target.parent.mkdir(parents=True, exist_ok=True)
+            created += _make_dirs(target.parent)
             temps.append(temp_path(target, None if suffixes is None else suffixes[i]))
         yield temps
         done: list[Path] = []
@@ -60,6 +62,7 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
                     os.chmod(tmp, 0o666 & ~_UMASK)
                 os.replace(tmp, target)
                 done.append(target)
+            published = True
         except BaseException:
             for target in done:
                 target.unlink(missing_ok=True)
@@ -67,6 +70,23 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
     finally:
         for tmp in temps:
             tmp.unlink(missing_ok=True)
+        if not published:
+            for d in reversed(created):
+                try:
+                    d.rmdir()
+                except OSError:
+                    pass
+
+
+def _make_dirs(path: Path) -> list[Path]:
+    """``mkdir -p path``; returns the folders it created, outermost first."""
+    missing = []
+    while not path.exists() and path != path.parent:
+        missing.append(path)
+        path = path.parent
+    for d in reversed(missing):
+        d.mkdir(exist_ok=True)
+    return list(reversed(missing))
 
 
 _TEMP_NAME = re.compile(r"\.(\d+)\.[A-Za-z0-9_]{8}\.tmp[^/]*$")  # .<stem>.<pid>.<mkstemp's 8>.tmp<suffix>
@@ -101,17 +121,23 @@ def _alive(pid: int) -> bool:
 
 
 def prepare_output_dir(path: str | os.PathLike) -> Path:
-    """Check ``path`` is usable as an output directory before any work is done (created when missing)."""
+    """Check ``path`` is usable as an output directory before any work is done.
+
+    It is not created here (a command refused later leaves no empty folder behind): the nearest
+    existing folder on the way must be a writable directory. Stale temporary files of dead
+    processes in it are removed.
+    """
     from mono_map.errors import MonoMapError
 
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise MonoMapError(f"--out: {path} is a file, not a directory")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise MonoMapError(f"--out: {path}: cannot create the directory ({exc.strerror})") from None
-    check_writable_dir(path, "--out")
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise MonoMapError(f"--out: {path}: cannot create the directory ({existing} is a file)")
+    check_writable_dir(existing, "--out")
     clean_stale_temps(path)
     return path
 
@@ -128,7 +154,17 @@ def check_writable_dir(path: str | os.PathLike, option: str) -> None:
     os.unlink(tmp)
 
 
-def check_output_file(path: str | os.PathLike, option: str, suffix: str | None = None) -> Path:
+def free_bytes(path: str | os.PathLike) -> int:
+    """Bytes free for unprivileged writers on the file system holding ``path`` (or its nearest existing folder)."""
+    path = Path(path)
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    st = os.statvfs(path)
+    return st.f_bavail * st.f_frsize
+
+
+def check_output_file(path: str | os.PathLike, option: str, suffix: str | None = None,
+                      min_free: int = 0) -> Path:
     """Check an output file option before any work: not a directory, the right suffix, a writable folder."""
     from mono_map.errors import MonoMapError
 
@@ -142,7 +178,37 @@ def check_output_file(path: str | os.PathLike, option: str, suffix: str | None =
         raise MonoMapError(f"{option}: {parent} is a file, not a directory")
     if parent.exists():
         check_writable_dir(parent, option)
+    if min_free and free_bytes(parent) < min_free:
+        raise MonoMapError(f"{option}: {path}: only {free_bytes(parent) / 2**20:.1f} MB free there, "
+                           f"need at least {min_free / 2**20:.0f} MB")
     return path
+
+
+@contextlib.contextmanager
+def quiet_native_output() -> Iterator[list[str]]:
+    """Capture what native code (e.g. OctoMap's C++ reader) prints on file descriptors 1 and 2.
+
+    Yields a list that holds the captured text (decoded, replacement characters for junk) once the
+    block ends; the caller decides whether to show it, so a corrupt file cannot flood the terminal.
+    """
+    import sys
+
+    captured: list[str] = []
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 1)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield captured
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            captured.append(sink.read(4096).decode("utf-8", "replace"))
 
 
 def _read_umask() -> int:

@@ -301,8 +301,9 @@ def build_and_write(seq, source: str, keep: float, cfg, frames, stride: int, mod
     written to (renamed with the map only if the whole build succeeds). Nothing is published
     if the build fails.
     """
+    from mono_map.errors import MonoMapError
     from mono_map.frames import frames_tag
-    from mono_map.io import atomic_outputs, write_json_atomic
+    from mono_map.io import atomic_outputs, quiet_native_output, write_json_atomic
     from mono_map.mapping.build import build_map, load_predictor, write_tree_bt
 
     frames = list(frames)
@@ -315,21 +316,65 @@ def build_and_write(seq, source: str, keep: float, cfg, frames, stride: int, mod
     with atomic_outputs(*targets) as temps:
         observers = list(observers)
         if rrd is not None:
-            observers.append(logger(temps[1]))
-        result = build_map(seq, source=source, keep=keep, frames=frames, octomap=cfg, stride=stride,
-                           predictor=predictor, observers=observers, show_progress=show_progress)
+            observers = [DiskSpaceGuard(Path(rrd))] + observers + [logger(temps[1])]
+        try:
+            result = build_map(seq, source=source, keep=keep, frames=frames, octomap=cfg, stride=stride,
+                               predictor=predictor, observers=observers, show_progress=show_progress)
+        except RuntimeError as exc:  # rerun's flush timing out: its sink could not write the recording
+            if rrd is None:
+                raise
+            raise MonoMapError(f"{rrd}: rerun could not write the recording ({exc})") from None
         stats = dict(result.stats)
         stats["model"] = (model or "shipped binary checkpoint") if source == "mono" else None
         if frames != list(range(frames[0], frames[-1] + 1)):
             stats["frame_indices"] = frames
-        write_tree_bt(result.tree, temps[0])
+        with _naming(bt), quiet_native_output():  # OctoMap's own warning on a full disk: reported below
+            write_tree_bt(result.tree, temps[0])
         stats["bt"] = str(bt)
         stats["bt_bytes"] = temps[0].stat().st_size
-        write_json_atomic(temps[-1], {"stats": stats, "job": job, "per_frame": result.per_frame})
+        with _naming(bt.with_suffix(".json")):
+            write_json_atomic(temps[-1], {"stats": stats, "job": job, "per_frame": result.per_frame})
     return bt, stats
 
 
+def _naming(target: Path):
+    """Errors while writing a temporary file are reported under the output's own name."""
+    import contextlib
+
+    from mono_map.errors import MonoMapError
+    from mono_map.io import free_bytes
+
+    @contextlib.contextmanager
+    def ctx():
+        try:
+            yield
+        except (OSError, MonoMapError) as exc:
+            why = getattr(exc, "strerror", None) or "write failed"
+            if free_bytes(target.parent) < (1 << 20):
+                why = "No space left on device" if why == "write failed" else why
+            raise MonoMapError(f"{target}: could not write it ({why}); nothing was published") from None
+    return ctx()
+
+
 DEFAULT_FRAMES = 500  # build and eval: the first 500 frames unless --frames says otherwise
+# rerun's file sink blocks for good on a full disk: a recording stops while this much is still free
+RRD_MIN_FREE = 32 << 20
+
+
+class DiskSpaceGuard:
+    """Observer that stops a build before the disk under ``path`` fills (MonoMapError naming it)."""
+
+    def __init__(self, path: Path, min_free: int = RRD_MIN_FREE):
+        self.path, self.min_free = Path(path), min_free
+
+    def __call__(self, update) -> None:
+        from mono_map.errors import MonoMapError
+        from mono_map.io import free_bytes
+
+        free = free_bytes(self.path.parent)
+        if free < self.min_free:
+            raise MonoMapError(f"{self.path}: the disk is nearly full ({free / 2**20:.1f} MB left) at frame "
+                               f"{update.index}; nothing was written")
 
 
 def run_build(args) -> int:
@@ -351,7 +396,7 @@ def run_build(args) -> int:
     cfg = octomap_config(args)
     selection = parse_frames(args.frames, default=first_frames(DEFAULT_FRAMES))
     check_name(args.name)
-    rrd = check_output_file(args.rrd, "--rrd", ".rrd") if args.rrd else None
+    rrd = check_output_file(args.rrd, "--rrd", ".rrd", min_free=RRD_MIN_FREE) if args.rrd else None
     if args.reference_map is not None and not Path(args.reference_map).is_file():
         raise MonoMapError(f"--reference-map: {args.reference_map}: no such file")
     check_data_root(args.data_root)

@@ -33,10 +33,14 @@ def register(subparsers) -> None:
 
 def _check_rrd(path: Path) -> None:
     """Refuse a file rerun cannot decode: the header (RrdReader), then every chunk (``rerun rrd verify``)."""
+    import warnings
+
     from rerun.chunk import RrdReader
 
     try:
-        recordings = RrdReader(path).recordings()
+        with warnings.catch_warnings():  # "no footer/manifest" warnings: verify below decides
+            warnings.simplefilter("ignore")
+            recordings = RrdReader(path).recordings()
     except Exception as exc:  # rerun raises RuntimeError/ValueError for non-RRD data
         raise MonoMapError(f"{path}: not a readable rerun recording ({exc})") from None
     if not recordings:

@@ -20,6 +20,7 @@ from mono_map.data.synth import writer
 from mono_map.data.synth.recipe import Recipe, load_recipe, recipe_path
 from mono_map.data.synth.trajectory import frame_pose_indices, frame_pose_lines, frame_poses
 from mono_map.errors import MonoMapError
+from mono_map.io import clean_stale_temps
 
 GENERATOR_VERSION = "3"
 FRAME_PERIOD = 0.1          # seconds between consecutive real poses (KITTI records at 10 Hz)
@@ -186,7 +187,11 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
                   f"{town.stats['black_cars']} black, {town.stats['trees']} trees) built in "
                   f"{time.perf_counter() - t0:.1f} s; rendering {len(todo)} frames with {workers} worker(s)",
                   file=sys.stderr)
-        _render_frames(recipe, town, seq_dir, todo, workers, quiet)
+        try:
+            _render_frames(recipe, town, seq_dir, todo, workers, quiet)
+        finally:  # interrupted or failed: the workers are gone, so are their half-written frame files
+            for sub in ("image_2", "depth_2", "velodyne"):
+                clean_stale_temps(seq_dir / sub)
     if fresh:
         writer.remove_frames_from(seq_dir, n)
     n_keep = max(n, marker.get("n_frames", 0) if (marker and current and not fresh) else n)
