@@ -24,8 +24,16 @@ COMMAND_MODULES = (
 )
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argparse parser whose usage errors are one line, like every other mono-map error."""
+
+    def error(self, message: str):
+        where = self.prog.removeprefix("mono-map").strip()
+        self.exit(2, f"mono-map: error: {where + ': ' if where else ''}{message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="mono-map",
         description="Uncertainty-aware monocular mapping: depth distributions -> OctoMap -> evaluation.",
     )

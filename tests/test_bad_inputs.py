@@ -200,6 +200,10 @@ CASES = [
     Case("frames-beyond-recipe", B + ["--frames", "0:100000"], "--frames"),
     Case("frames-beyond-empty-root", B + ["--frames", "0:100000", "--data-root", "{tmp}/empty"], "--frames"),
     Case("frames-beyond-sequence-list", B + ["--frames", "1,9"], "--frames"),
+    Case("frames-letters-seq-00-empty-root", B + ["--seq", "00", "--frames", "a:b", "--data-root", "{tmp}/empty"],
+         "--frames"),
+    Case("frames-beyond-seq-00-empty-root", B + ["--seq", "00", "--frames", "0:100000", "--data-root",
+                                                 "{tmp}/empty"], "--frames"),
     Case("predict-frames-letters", ["predict", "--seq", "tiny", "--data-root", "{data}", "--frames", "a:b",
                                     "--out", "{out}/p"], "--frames"),
     Case("predict-frames-beyond", ["predict", "--seq", "tiny", "--data-root", "{data}", "--frames", "0:50",
@@ -222,6 +226,8 @@ CASES = [
     Case("res-too-fine", B + ["--res", "0.001"], "--res"),
     Case("res-out-of-memory", B + ["--res", "0.05"], "--res", env={"MONO_MAP_MEMORY_GB": "0.5"}),
     Case("prob-hit", B + ["--prob-hit", "0.3"], "--prob-hit"),
+    Case("stride-not-an-integer", M + ["--stride", "abc"], "--stride"),
+    Case("required-option-missing", ["build", "--data-root", "{data}"], "--seq"),
     Case("keep-zero", M + ["--keep", "0"], "--keep"),
     Case("keep-nan", M + ["--keep", "nan"], "--keep"),
     Case("stride-zero", M + ["--stride", "0"], "--stride"),
@@ -276,6 +282,17 @@ CASES = [
          lambda c: replace(c.good_rrd, np.random.default_rng(2).bytes(5000))),
     Case("view-truncated-rrd", ["view", "{tmp}/r.rrd", "--save", "{out}/v.rrd"], "r.rrd", rrd_truncated),
     Case("view-suffix", ["view", "{tmp}/m.json"], "m.json"),
+    Case("view-corrupt-map", ["view", "{tmp}/m.bt", "--save", "{out}/v.rrd"], "m.bt", bt_truncated),
+    Case("reference-map-corrupt", B + ["--reference-map", "{tmp}/m.bt", "--rrd", "{out}/r.rrd"], "m.bt",
+         bt_truncated),
+    Case("predict-folder-with-a-bad-image", ["predict", "--images", "{tmp}/imgs", "--out", "{out}/p"], "b.png",
+         lambda c: (write("imgs/a.png", seq_file(c, "image_2/000000.png").read_bytes())(c),
+                    write("imgs/b.png", b"junk")(c))),
+    Case("predict-folder-grayscale", ["predict", "--images", "{tmp}/imgs", "--out", "{out}/p"], "g.png",
+         lambda c: write("imgs/g.png", cv2.imencode(".png", np.zeros((40, 60), np.uint8))[1].tobytes())(c)),
+    Case("synth-recipe-missing", ["synth", "--seq", "no_such_recipe", "--data-root", "{data}"], "no_such_recipe"),
+    Case("synth-recipe-not-toml", ["synth", "--seq", "{tmp}/bad.toml", "--data-root", "{data}"], "bad.toml",
+         write("bad.toml", "x = \n")),
     # checkpoints
     Case("model-missing", M + ["--model", "{tmp}/missing.pt"], "missing.pt"),
     Case("model-random-bytes", M + ["--model", "{tmp}/rand.pt"], "rand.pt",
@@ -294,7 +311,10 @@ def test_bad_input(case: Case, ctx: Ctx, capfd, monkeypatch):
         case.setup(ctx)
     before = snapshot(ctx.tmp)
     capfd.readouterr()
-    rc = cli_main(ctx.fill(case.argv))
+    try:
+        rc = cli_main(ctx.fill(case.argv))
+    except SystemExit as exc:  # argparse's usage errors
+        rc = exc.code
     captured = capfd.readouterr()
     assert rc != 0
     assert "Traceback" not in captured.out

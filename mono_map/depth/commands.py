@@ -109,12 +109,18 @@ def run_predict(args) -> int:
         idx = selection.resolve(len(seq))
         items = [(f"{i:06d}", (lambda i=i: seq.image(i))) for i in idx]
     else:
-        from mono_map.data.kitti import read_image_rgb
+        from mono_map.data.kitti import PNG_GRAY_TYPES, read_image_rgb, read_png_header
 
         folder = Path(args.images)
         files = sorted(p for p in folder.glob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
         if not files:
             raise MonoMapError(f"{folder}: no .png/.jpg images")
+        for f in files:  # every file checked before the first prediction is written
+            if f.suffix.lower() == ".png":
+                if read_png_header(f)[2] in PNG_GRAY_TYPES:
+                    raise MonoMapError(f"{f}: grayscale image; a colour (RGB) image is needed")
+            elif f.read_bytes()[:3] != b"\xff\xd8\xff":
+                raise MonoMapError(f"{f}: unreadable image (not a JPEG file)")
         items = [(p.stem, (lambda p=p: read_image_rgb(p))) for p in files]
     logk = float(np.log(pred.bins.num_bins))
     for sub in ("depth", "entropy", "vis"):

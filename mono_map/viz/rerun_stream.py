@@ -134,15 +134,9 @@ def occupied_cells_from_bt(path: str | Path) -> tuple[np.ndarray, float]:
 
     Pruned (merged) occupied nodes are expanded into their finest-level cells.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise MonoMapError(f"{path}: no such map file")
-    import octomap
+    from mono_map.eval.map_metrics import load_tree
 
-    tree = octomap.OcTree(0.1)
-    ok = tree.readBinary(str(path).encode())
-    if not ok:
-        raise MonoMapError(f"{path}: not a readable OctoMap binary (.bt) file")
+    tree = load_tree(path)  # MonoMapError naming the file if missing or corrupt
     res = float(tree.getResolution())
     centres, sizes = [], []
     for leaf in tree.begin_leafs():
