@@ -100,7 +100,7 @@ def clean_stale_temps(directory: str | os.PathLike) -> list[Path]:
         return removed
     for p in directory.glob(".*.tmp*"):
         m = _TEMP_NAME.search(p.name)
-        if m is None or not p.is_file() or _alive(int(m.group(1))):
+        if m is None or not p.is_file() or pid_alive(int(m.group(1))):
             continue
         try:
             p.unlink()
@@ -110,13 +110,16 @@ def clean_stale_temps(directory: str | os.PathLike) -> list[Path]:
     return removed
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (on this machine)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except (PermissionError, OverflowError):
+    except PermissionError:
         return True
+    except (OverflowError, ValueError):
+        return False
     return True
 
 

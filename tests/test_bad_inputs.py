@@ -273,6 +273,12 @@ CASES = [
          locked_by_pid_1),
     Case("map-sidecar-truncated", EVAL, "m.json", lambda c: replace(c.good_bt.with_suffix(".json"), '{"stats": {"n')),
     Case("map-sidecar-list", EVAL, "m.json", lambda c: replace(c.good_bt.with_suffix(".json"), "[1]")),
+    Case("map-sidecar-bad-frames", ["eval", "--map", "{tmp}/m.bt", "--reference", "lidar-fov", "--seq", "tiny",
+                                    "--data-root", "{data}", "--out", "{out}"], "m.json",
+         lambda c: replace(c.good_bt.with_suffix(".json"), json.dumps({"stats": {"frames": ["a", "b"]}}))),
+    Case("map-sidecar-frames-beyond", ["eval", "--map", "{tmp}/m.bt", "--reference", "lidar-fov", "--seq", "tiny",
+                                       "--data-root", "{data}", "--out", "{out}"], "m.json",
+         lambda c: replace(c.good_bt.with_suffix(".json"), json.dumps({"stats": {"frames": [0, 100000]}}))),
     Case("map-header-then-junk", EVAL, "m.bt", bt_junk),
     Case("map-truncated", EVAL, "m.bt", bt_truncated),
     Case("map-not-octomap", EVAL, "m.bt", lambda c: replace(c.good_bt, "hello")),
@@ -335,12 +341,12 @@ def test_partial_marker_lock_is_overridden_by_force_and_ignores_a_reused_pid(ctx
     does not lock; one that cannot tell (old marker, live PID) locks until --force."""
     import socket
 
-    from mono_map.data.synth.generate import _owner_alive, process_start
+    from mono_map.data.synth.generate import owner_alive, process_start
 
     host = socket.gethostname()
-    assert _owner_alive({"pid": 1, "host": host, "pid_start": "not-its-start"}) is None
-    assert _owner_alive({"pid": 1, "host": host, "pid_start": process_start(1)}) == 1
-    assert _owner_alive({"pid": 1, "host": "elsewhere"}) is None
+    assert owner_alive({"pid": 1, "host": host, "pid_start": "not-its-start"}) is None
+    assert owner_alive({"pid": 1, "host": host, "pid_start": process_start(1)}) == 1
+    assert owner_alive({"pid": 1, "host": "elsewhere"}) is None
     locked_by_pid_1(ctx)
     assert cli_main(["synth", "--seq", "tiny", "--data-root", str(ctx.data), "--force", "--workers", "1"]) == 0
     assert not seq_file(ctx, ".synth_partial.json").exists() and seq_file(ctx, "synth.json").is_file()
@@ -368,6 +374,17 @@ def test_failed_build_keeps_the_previous_outputs(ctx, capsys):
     assert_one_error_line(capsys.readouterr().err, "000001.bin")
     assert snapshot(ctx.tmp) == before_data and {k for k in before if k.startswith("out")} == \
         {k for k in before_data if k.startswith("out")}
+
+
+def test_eval_reference_is_built_for_the_maps_frames(ctx, capsys):
+    """eval --map M --reference lidar-fov builds the reference for M's own frames (from its .json),
+    never for the default 500 frames (which would render a synthetic sequence further)."""
+    before = snapshot(ctx.data)
+    assert cli_main(["eval", "--map", str(ctx.good_bt), "--reference", "lidar-fov", "--seq", "tiny",
+                     "--data-root", str(ctx.data), "--out", str(ctx.out)]) == 0
+    assert "accuracy   100.00 %" in capsys.readouterr().out  # the map is the LiDAR-FOV map of frames 0:2
+    assert [p.name for p in sorted(ctx.out.glob("*.bt"))] == ["lidar-fov_res0.4_f0-2.bt"]
+    assert snapshot(ctx.data) == before
 
 
 def test_stale_map_is_never_reused(ctx, capsys, tmp_path):

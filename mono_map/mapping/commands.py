@@ -514,6 +514,7 @@ def parse_keeps(text: str) -> tuple[float, ...]:
 
 def run_eval(args) -> int:
     from mono_map.errors import MonoMapError
+    from mono_map.frames import FrameSelection
 
     cfg, selection = check_eval_options(args)
     if args.table:
@@ -537,17 +538,18 @@ def run_eval(args) -> int:
         meta = side["stats"] if side else {}
         cfg = cfg.__class__(**{**cfg.__dict__, "resolution": float(tree.getResolution())})
         out_dir = prepare_output_dir(Path(args.out) if args.out else map_path.parent)
-        seq = prepare_sequence(args.data_root, args.seq, selection if args.frames is not None else None)
-        if args.frames is None and isinstance(meta.get("frame_indices"), list):
-            frames = [int(i) for i in meta["frame_indices"]]
-        elif args.frames is None and isinstance(meta.get("frames"), list) and len(meta["frames"]) == 2:
-            frames = list(range(*[int(x) for x in meta["frames"]]))
-        else:
-            frames = selection.resolve(len(seq))
-        if frames and frames[-1] >= len(seq):
-            from mono_map.errors import MonoMapError
-
-            raise MonoMapError(f"{map_path}: built from frames up to {frames[-1]}, sequence {args.seq} has {len(seq)}")
+        try:
+            if args.frames is None and isinstance(meta.get("frame_indices"), list):
+                selection = FrameSelection(f"{map_path.name}'s frames", option=str(map_path.with_suffix(".json")),
+                                           indices=tuple(int(i) for i in meta["frame_indices"]))
+            elif args.frames is None and isinstance(meta.get("frames"), list) and len(meta["frames"]) == 2:
+                a, b = (int(x) for x in meta["frames"])
+                selection = FrameSelection(f"{map_path.name}'s frames {a}:{b}", option=str(map_path.with_suffix(".json")),
+                                           start=a, stop=b)
+        except (TypeError, ValueError):
+            raise MonoMapError(f"{map_path.with_suffix('.json')}: malformed 'frames' in the map's statistics") from None
+        seq = prepare_sequence(args.data_root, args.seq, selection)
+        frames = selection.resolve(len(seq))
         ref_path = reference_path(args, seq, cfg, frames, out_dir)
     else:
         ref_path = reference_path(args, None, None, [], Path("."))

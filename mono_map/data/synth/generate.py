@@ -20,7 +20,7 @@ from mono_map.data.synth import writer
 from mono_map.data.synth.recipe import Recipe, load_recipe, recipe_path
 from mono_map.data.synth.trajectory import frame_pose_indices, frame_pose_lines, frame_poses
 from mono_map.errors import MonoMapError
-from mono_map.io import clean_stale_temps
+from mono_map.io import clean_stale_temps, pid_alive
 
 GENERATOR_VERSION = "3"
 FRAME_PERIOD = 0.1          # seconds between consecutive real poses (KITTI records at 10 Hz)
@@ -96,19 +96,7 @@ def process_start(pid: int) -> str | None:
     return stat.rsplit(")", 1)[1].split()[19]  # field 22, after the command name
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    except (OverflowError, ValueError):
-        return False
-    return True
-
-
-def _owner_alive(partial: dict) -> int | None:
+def owner_alive(partial: dict) -> int | None:
     """PID of the live process a partial marker names as its writer, else None (finished, killed, or
     the PID now belongs to another process: the recorded start time differs)."""
     import socket
@@ -116,7 +104,7 @@ def _owner_alive(partial: dict) -> int | None:
     pid = partial.get("pid")
     if not isinstance(pid, int) or isinstance(pid, bool) or pid == os.getpid():
         return None
-    if partial.get("host") != socket.gethostname() or not _pid_alive(pid):
+    if partial.get("host") != socket.gethostname() or not pid_alive(pid):
         return None
     started = partial.get("pid_start")
     if started is not None and process_start(pid) not in (None, started):
@@ -126,7 +114,7 @@ def _owner_alive(partial: dict) -> int | None:
 
 def _check_not_busy(seq_dir: Path, partial: dict | None, force: bool = False) -> None:
     """Refuse to work on a sequence another live process is generating (its partial marker names it)."""
-    pid = _owner_alive(partial) if partial else None
+    pid = owner_alive(partial) if partial else None
     if pid is not None and not force:
         raise MonoMapError(f"{seq_dir / writer.PARTIAL_MARKER}: process {pid} is generating this sequence right "
                            "now; wait for it to finish, stop it, or pass --force if that process is not mono-map")
