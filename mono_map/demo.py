@@ -33,7 +33,8 @@ def run(args: argparse.Namespace) -> int:
     from mono_map.data.prepare import check_data_root, prepare_sequence
     from mono_map.frames import first_frames, frames_tag, parse_frames
     from mono_map.mapping.build import load_predictor
-    from mono_map.mapping.commands import DEFAULT_FRAMES, build_and_write, job_key, map_stem, model_digest, reusable
+    from mono_map.mapping.commands import DEFAULT_FRAMES
+    from mono_map.mapping.jobs import build_and_write, job_key, map_stem, model_digest, reusable
     from mono_map.mapping.table import TableJob, run_table
     from mono_map.viz.rerun_stream import RerunMapLogger
 

@@ -10,7 +10,6 @@ from mono_map.cli import main
 from mono_map.data.depth_png import read_depth_png
 from mono_map.depth.inference import save_checkpoint
 from mono_map.depth.networks import DepthNet, named_config
-from mono_map.errors import MonoMapError
 
 
 TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),

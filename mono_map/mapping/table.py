@@ -36,7 +36,7 @@ class TableJob:
 def _cached(bt: Path, job: dict, build):
     """Reuse ``bt`` if its .json says it was built by exactly ``job`` (data root, model digest,
     settings, frames); else build it again, saying why."""
-    from mono_map.mapping.commands import read_map_sidecar, reusable
+    from mono_map.mapping.jobs import read_map_sidecar, reusable
 
     ok, why = reusable(bt, job)
     if ok:
@@ -53,7 +53,7 @@ def run_table(job: TableJob) -> int:
     from mono_map.frames import frames_tag
     from mono_map.io import write_json_atomic, write_text_atomic
     from mono_map.mapping.build import load_predictor
-    from mono_map.mapping.commands import build_and_write, job_key, map_stem, model_digest
+    from mono_map.mapping.jobs import build_and_write, job_key, map_stem, model_digest
 
     cfg = job.octomap
     reference = job.reference
