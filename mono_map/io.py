@@ -57,11 +57,12 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
         yield temps
         done: list[Path] = []
         try:
-            for tmp, target in zip(temps, targets):
-                if tmp.exists():  # mkstemp makes 0600; give results the mode a plain open() would
-                    os.chmod(tmp, 0o666 & ~_UMASK)
-                os.replace(tmp, target)
-                done.append(target)
+            with _dir_locks(sorted({t.parent for t in targets})):  # another writer's set never interleaves
+                for tmp, target in zip(temps, targets):
+                    if tmp.exists():  # mkstemp makes 0600; give results the mode a plain open() would
+                        os.chmod(tmp, 0o666 & ~_UMASK)
+                    os.replace(tmp, target)
+                    done.append(target)
             published = True
         except BaseException:
             for target in done:
@@ -76,6 +77,24 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
                     d.rmdir()
                 except OSError:
                     pass
+
+
+@contextlib.contextmanager
+def _dir_locks(dirs: list[Path]) -> Iterator[None]:
+    """Exclusive advisory locks (flock) on folders, taken in sorted order: publishing a set of
+    outputs is one step for every mono-map process writing into the same folders."""
+    import fcntl
+
+    fds = []
+    try:
+        for d in dirs:
+            fd = os.open(d, os.O_RDONLY)
+            fds.append(fd)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        for fd in fds:
+            os.close(fd)  # closing releases the lock
 
 
 def _make_dirs(path: Path) -> list[Path]:

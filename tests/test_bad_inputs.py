@@ -505,6 +505,22 @@ def test_sigint_during_eval_table_leaves_no_outputs(ctx):
     assert not list(ctx.out.iterdir())
 
 
+def test_res_too_fine_under_a_memory_limit_is_refused_with_the_estimate(ctx):
+    """The issue's case: --res 0.01 on one LiDAR frame under a 3 GB address-space limit (ulimit -v)
+    was a MemoryError; now it is refused before building, with the estimate."""
+    import resource
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+
+    r = subprocess.run(PY + ctx.fill(B + ["--res", "0.01", "--frames", "0:1"]), cwd=REPO, env=cli_env(),
+                       capture_output=True, text=True, timeout=120, preexec_fn=limit)
+    assert r.returncode == 2
+    line = assert_one_error_line(r.stderr, "--res: 0.01 m cells")
+    assert "GB, more than the 3.0 GB allowed (ulimit -v)" in line
+    assert not any(ctx.out.iterdir())
+
+
 def test_concurrent_builds_with_one_recording(ctx):
     """Two builds writing the same map and --rrd: both finish, the published set is one build's
     whole, consistent output, the recording decodes, no temporary file is left."""
