@@ -98,11 +98,10 @@ def test_reader_agrees_with_pykitti(tmp_path):
 def test_frame_poses_use_cam2_offset(tmp_path):
     make_sequence(tmp_path, n=3)
     seq = KittiSequence(tmp_path, "42")
-    f = seq.frame(2, velodyne=True)
-    assert f.image.shape == (H, W, 3) and f.velodyne.shape == (100, 4)
+    assert seq.image(2).shape == (H, W, 3) and seq.velodyne(2).shape == (100, 4)
     # camera centre of image_2 in the world = cam0 centre moved by -t2 along cam0's axes
     T0 = seq.poses_cam0[2]
-    c2 = f.T_world_cam2[:3, 3]
+    c2 = seq.T_world_cam2(2)[:3, 3]
     expected = T0[:3, :3] @ (-seq.calib.T_cam2_cam0[:3, 3]) + T0[:3, 3]
     np.testing.assert_allclose(c2, expected, atol=1e-12)
     assert 0.055 < np.linalg.norm(c2 - T0[:3, 3]) < 0.065

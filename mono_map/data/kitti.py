@@ -11,8 +11,9 @@ Layout under a data root (the standard KITTI odometry download)::
 
 Every file is validated before use; bad input raises :class:`MonoMapError` naming the
 file.  Opening a sequence checks the listing, calibration, poses, times and every image's PNG
-header (size, colour) against the calibration; nothing here knows whether the sequence is real
-or synthetic (rendering a missing synthetic one is the commands' job: :mod:`mono_map.data.prepare`).
+header (size, colour) against the calibration. Real and synthetic sequences read alike; a synthetic
+one's ``synth.json`` only says how many frames are complete (rendering a missing synthetic sequence
+is the commands' job: :mod:`mono_map.data.prepare`).
 """
 
 from __future__ import annotations
@@ -254,25 +255,6 @@ def read_object_calibration(path: str | os.PathLike) -> Calibration:
     return Calibration(P2=data["P2"].reshape(3, 4), T_cam0_velo=R0 @ geometry.make_pose(Tr[:, :3], Tr[:, 3]))
 
 
-@dataclass(frozen=True)
-class Frame:
-    """One time step of a sequence, everything in image_2's terms.
-
-    image: H×W×3 uint8 RGB; K: 3×3 image_2 intrinsics; T_world_cam2: 4×4 (metres,
-    world = first cam0 frame); T_cam2_velo: 4×4; velodyne: (N, 4) float32 in the
-    velodyne frame or None; depth: H×W float32 metres dense ground truth or None.
-    """
-
-    index: int
-    time: float
-    image: np.ndarray
-    K: np.ndarray
-    T_world_cam2: np.ndarray
-    T_cam2_velo: np.ndarray
-    velodyne: np.ndarray | None = None
-    depth: np.ndarray | None = None
-
-
 class KittiSequence:
     """A validated KITTI odometry sequence under ``root`` (real or synthetic)."""
 
@@ -339,10 +321,6 @@ class KittiSequence:
         return i % len(self)
 
     @property
-    def has_poses(self) -> bool:
-        return self.poses_cam0 is not None
-
-    @property
     def is_synthetic(self) -> bool:
         """True for sequences written by mono-map's generator (they carry ``synth.json``)."""
         return (self.path / "synth.json").is_file()
@@ -355,10 +333,6 @@ class KittiSequence:
     def T_world_cam2(self, i: int) -> np.ndarray:
         """Pose of image_2 in the world (first cam0 frame): T_world_cam0 · inv(T_cam2_cam0)."""
         return self.T_world_cam0(i) @ geometry.pose_inverse(self.calib.T_cam2_cam0)
-
-    def T_world_velo(self, i: int) -> np.ndarray:
-        """Pose of the velodyne in the world: T_world_cam0 · Tr."""
-        return self.T_world_cam0(i) @ self.calib.T_cam0_velo
 
     def image(self, i: int) -> np.ndarray:
         """image_2 of frame i: H×W×3 uint8 RGB."""
@@ -393,19 +367,6 @@ class KittiSequence:
         scan = self.velodyne(i)
         pts_cam2 = geometry.transform_points(self.calib.T_cam2_velo, scan[:, :3])
         return geometry.lidar_depth_image(pts_cam2, self.calib.K2, *self.image_size)
-
-    def frame(self, i: int, velodyne: bool = False, depth: bool = False) -> Frame:
-        i = self._check_index(i)
-        return Frame(
-            index=i,
-            time=float(self.times[i]),
-            image=self.image(i),
-            K=self.calib.K2,
-            T_world_cam2=self.T_world_cam2(i),
-            T_cam2_velo=self.calib.T_cam2_velo,
-            velodyne=self.velodyne(i) if velodyne else None,
-            depth=self.depth(i) if depth else None,
-        )
 
 
 def open_sequence(root: str | os.PathLike | None, name: str) -> KittiSequence:
