@@ -80,6 +80,34 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
 
 
 @contextlib.contextmanager
+def staged_dir(out: str | os.PathLike) -> Iterator[Path]:
+    """Yield a hidden staging folder inside ``out`` for many output files; on success move each file
+    to the same relative path under ``out``, on failure remove them all (``out`` too, if made here)."""
+    import shutil
+
+    out = Path(out)
+    created = _make_dirs(out)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}.", suffix=".tmp", dir=out))
+    published = False
+    try:
+        yield stage
+        with _dir_locks([out]):
+            for f in sorted(p for p in stage.rglob("*") if p.is_file()):
+                target = out / f.relative_to(stage)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(f, target)
+        published = True
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        if not published:
+            for d in reversed(created):
+                try:
+                    d.rmdir()
+                except OSError:
+                    pass
+
+
+@contextlib.contextmanager
 def _dir_locks(dirs: list[Path]) -> Iterator[None]:
     """Exclusive advisory locks (flock) on folders, taken in sorted order: publishing a set of
     outputs is one step for every mono-map process writing into the same folders."""
@@ -112,17 +140,23 @@ _TEMP_NAME = re.compile(r"\.(\d+)\.[A-Za-z0-9_]{8}\.tmp[^/]*$")  # .<stem>.<pid>
 
 
 def clean_stale_temps(directory: str | os.PathLike) -> list[Path]:
-    """Remove the temporary files (see the module doc) in ``directory`` whose writing process is gone."""
+    """Remove the temporary files and staging folders (see the module doc) in ``directory`` whose
+    writing process is gone."""
     removed = []
     directory = Path(directory)
     if not directory.is_dir():
         return removed
     for p in directory.glob(".*.tmp*"):
         m = _TEMP_NAME.search(p.name)
-        if m is None or not p.is_file() or pid_alive(int(m.group(1))):
+        if m is None or pid_alive(int(m.group(1))):
             continue
         try:
-            p.unlink()
+            if p.is_dir():  # a staging folder (staged_dir)
+                import shutil
+
+                shutil.rmtree(p)
+            else:
+                p.unlink()
             removed.append(p)
         except OSError:
             pass

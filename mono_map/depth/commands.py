@@ -83,16 +83,10 @@ def colourise(values, vmin: float, vmax: float, cmap: str = "magma"):
 
 
 def run_predict(args) -> int:
-    import cv2
-    import numpy as np
-
-    from mono_map.data.depth_png import write_depth_png
     from mono_map.depth.inference import DepthPredictor
     from mono_map.errors import MonoMapError
-    from mono_map.io import atomic_path
+    from mono_map.io import prepare_output_dir, staged_dir
     from mono_map.progress import progress
-
-    from mono_map.io import prepare_output_dir
 
     if args.images and args.frames is not None:
         raise MonoMapError("--frames: selects frames of a --seq, not of an --images folder")
@@ -121,31 +115,41 @@ def run_predict(args) -> int:
             elif f.read_bytes()[:3] != b"\xff\xd8\xff":
                 raise MonoMapError(f"{f}: unreadable image (not a JPEG file)")
         items = [(p.stem, (lambda p=p: read_image_rgb(p))) for p in files]
-    logk = float(np.log(pred.bins.num_bins))
-    for sub in ("depth", "entropy", "vis"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    for name, load in progress(items, total=len(items), desc="predict", unit="frame"):
-        img = load()
-        p = pred.predict(img)
-        write_depth_png(out / "depth" / f"{name}.png", p.depth)
-        with atomic_path(out / "entropy" / f"{name}.png") as tmp:  # uint16, nats × 10000
-            cv2.imwrite(str(tmp), np.clip(np.round(p.entropy * 10000), 0, 65535).astype(np.uint16))
-        vis = np.concatenate([img, colourise(1.0 / p.depth, 1.0 / pred.bins.max_depth, 1.0 / 3.0, "magma"),
-                              colourise(p.entropy, 0.0, logk if pred.cfg.head != "gaussian" else 2.0, "viridis")], 0)
-        with atomic_path(out / "vis" / f"{name}.jpg") as tmp:
-            cv2.imwrite(str(tmp), cv2.cvtColor(vis, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])
-        if args.npz:
-            import torch
-
-            from mono_map.depth.losses import decode
-
-            raw, _ = pred.raw_outputs([img])
-            probs = decode(pred.head, raw, pred.bins, with_probs=True)["probs"]
-            with atomic_path(out / "npz" / f"{name}.npz") as tmp:
-                np.savez_compressed(tmp, probs=None if probs is None else probs[0].numpy().astype(np.float16),
-                                    bin_centres=pred.bins.centres, depth=p.depth, entropy=p.entropy)
+    with staged_dir(out) as stage:  # every prediction appears when all are done, none if one fails
+        for sub in ("depth", "entropy", "vis") + (("npz",) if args.npz else ()):
+            (stage / sub).mkdir()
+        for name, load in progress(items, total=len(items), desc="predict", unit="frame"):
+            predict_one(pred, name, load(), stage, args.npz)
     print(f"wrote {len(items)} predictions to {out}/(depth|entropy|vis{'|npz' if args.npz else ''})")
     return 0
+
+
+def predict_one(pred, name: str, img, out: Path, npz: bool) -> None:
+    """Write one image's depth (KITTI uint16 PNG), entropy (uint16, nats × 10000), picture and
+    optionally its distributions under ``out``."""
+    import cv2
+    import numpy as np
+
+    from mono_map.data.depth_png import write_depth_png
+    from mono_map.io import atomic_path
+
+    logk = float(np.log(pred.bins.num_bins))
+    p = pred.predict(img)
+    write_depth_png(out / "depth" / f"{name}.png", p.depth)
+    with atomic_path(out / "entropy" / f"{name}.png") as tmp:  # uint16, nats × 10000
+        cv2.imwrite(str(tmp), np.clip(np.round(p.entropy * 10000), 0, 65535).astype(np.uint16))
+    vis = np.concatenate([img, colourise(1.0 / p.depth, 1.0 / pred.bins.max_depth, 1.0 / 3.0, "magma"),
+                          colourise(p.entropy, 0.0, logk if pred.cfg.head != "gaussian" else 2.0, "viridis")], 0)
+    with atomic_path(out / "vis" / f"{name}.jpg") as tmp:
+        cv2.imwrite(str(tmp), cv2.cvtColor(vis, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    if npz:
+        from mono_map.depth.losses import decode
+
+        raw, _ = pred.raw_outputs([img])
+        probs = decode(pred.head, raw, pred.bins, with_probs=True)["probs"]
+        with atomic_path(out / "npz" / f"{name}.npz") as tmp:
+            np.savez_compressed(tmp, probs=None if probs is None else probs[0].numpy().astype(np.float16),
+                                bin_centres=pred.bins.centres, depth=p.depth, entropy=p.entropy)
 
 
 def _models(args) -> list[str]:
