@@ -24,8 +24,16 @@ COMMAND_MODULES = (
 )
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argparse parser whose usage errors are one line, like every other mono-map error."""
+
+    def error(self, message: str):
+        where = self.prog.removeprefix("mono-map").strip()
+        self.exit(2, f"mono-map: error: {where + ': ' if where else ''}{message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="mono-map",
         description="Uncertainty-aware monocular mapping: depth distributions -> OctoMap -> evaluation.",
     )
@@ -36,25 +44,56 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that every ``finally`` (temporary files) runs."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    import signal
+    import threading
+
+    from mono_map.progress import close_bars
+
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    else:
+        previous = None
     try:
         result = args.func(args)
     except MonoMapError as exc:
-        print(f"mono-map: error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(close_bars, str(exc), 2)
     except OSError as exc:  # an output path that is a file, a full disk, no permission, ...
         where = exc.filename if exc.filename is not None else "I/O"
-        print(f"mono-map: error: {where}: {exc.strerror or exc}", file=sys.stderr)
-        return 2
+        return _fail(close_bars, f"{where}: {exc.strerror or exc}", 2)
+    except MemoryError:
+        return _fail(close_bars, "out of memory (try a coarser --res, a --max-range or fewer --frames)", 2)
     except KeyboardInterrupt:
+        close_bars()
         print("mono-map: interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        close_bars()
+        print("mono-map: terminated", file=sys.stderr)
+        return 143
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return int(result or 0)
+
+
+def _fail(close_bars, message: str, code: int) -> int:
+    close_bars()
+    print(f"mono-map: error: {' '.join(message.split())}", file=sys.stderr)  # one line, whatever the message
+    return code
 
 
 if __name__ == "__main__":

@@ -1,10 +1,17 @@
-"""Atomic file output: results appear whole or not at all."""
+"""Atomic file output: results appear whole or not at all, alone or as a set.
+
+Temporary files are ``.<stem>.<pid>.<random>.tmp<suffix>`` beside their target (``mkstemp``: unique
+per process and call, so concurrent writers never share one). A process killed before it could
+remove its temporary files leaves them behind; :func:`clean_stale_temps` removes those whose
+process is gone.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
@@ -18,34 +25,246 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     is given, since some libraries pick the format from it); if the body raises,
     the temporary file is removed and ``path`` is left untouched.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    suffix = path.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{suffix}", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
+    with atomic_outputs(path, suffixes=None if suffix is None else [suffix]) as (tmp_path,):
         yield tmp_path
-        if tmp_path.exists():  # mkstemp makes 0600; give results the mode a plain open() would
-            os.chmod(tmp_path, 0o666 & ~_UMASK)
-        os.replace(tmp_path, path)
+
+
+def temp_path(path: str | os.PathLike, suffix: str | None = None) -> Path:
+    """A new empty temporary file beside ``path``, unique to this process and call (mkstemp)."""
+    path = Path(path)
+    suffix = path.suffix if suffix is None else suffix
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.{os.getpid()}.", suffix=f".tmp{suffix}", dir=path.parent)
+    os.close(fd)
+    return Path(tmp)
+
+
+@contextlib.contextmanager
+def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None) -> Iterator[list[Path]]:
+    """Yield one temporary path per target; on success publish them all, on failure none.
+
+    The targets are renamed in the order given, so a reader that checks the last one (e.g. a
+    map's ``.json`` beside its ``.bt``) sees either the whole set or an incomplete one it
+    ignores; if a rename fails, the targets already renamed are removed again.
+    """
+    targets = [Path(p) for p in paths]
+    temps: list[Path] = []
+    created: list[Path] = []  # folders made here, removed again (if empty) when nothing is published
+    published = False
+    try:
+        for i, target in enumerate(targets):
+            created += _make_dirs(target.parent)
+            temps.append(temp_path(target, None if suffixes is None else suffixes[i]))
+        yield temps
+        done: list[Path] = []
+        try:
+            with _dir_locks(sorted({t.parent for t in targets})):  # another writer's set never interleaves
+                for tmp, target in zip(temps, targets):
+                    if tmp.exists():  # mkstemp makes 0600; give results the mode a plain open() would
+                        os.chmod(tmp, 0o666 & ~_UMASK)
+                    os.replace(tmp, target)
+                    done.append(target)
+            published = True
+        except BaseException:
+            for target in done:
+                target.unlink(missing_ok=True)
+            raise
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        for tmp in temps:
+            tmp.unlink(missing_ok=True)
+        if not published:
+            for d in reversed(created):
+                try:
+                    d.rmdir()
+                except OSError:
+                    pass
+
+
+@contextlib.contextmanager
+def staged_dir(out: str | os.PathLike) -> Iterator[Path]:
+    """Yield a hidden staging folder inside ``out`` for many output files; on success move each file
+    to the same relative path under ``out``, on failure remove them all (``out`` too, if made here)."""
+    import shutil
+
+    out = Path(out)
+    created = _make_dirs(out)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}.", suffix=".tmp", dir=out))
+    published = False
+    try:
+        yield stage
+        with _dir_locks([out]):
+            for f in sorted(p for p in stage.rglob("*") if p.is_file()):
+                target = out / f.relative_to(stage)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(f, target)
+        published = True
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        if not published:
+            for d in reversed(created):
+                try:
+                    d.rmdir()
+                except OSError:
+                    pass
+
+
+@contextlib.contextmanager
+def _dir_locks(dirs: list[Path]) -> Iterator[None]:
+    """Exclusive advisory locks (flock) on folders, taken in sorted order: publishing a set of
+    outputs is one step for every mono-map process writing into the same folders."""
+    import fcntl
+
+    fds = []
+    try:
+        for d in dirs:
+            fd = os.open(d, os.O_RDONLY)
+            fds.append(fd)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        for fd in fds:
+            os.close(fd)  # closing releases the lock
+
+
+def _make_dirs(path: Path) -> list[Path]:
+    """``mkdir -p path``; returns the folders it created, outermost first."""
+    missing = []
+    while not path.exists() and path != path.parent:
+        missing.append(path)
+        path = path.parent
+    for d in reversed(missing):
+        d.mkdir(exist_ok=True)
+    return list(reversed(missing))
+
+
+_TEMP_NAME = re.compile(r"\.(\d+)\.[A-Za-z0-9_]{8}\.tmp[^/]*$")  # .<stem>.<pid>.<mkstemp's 8>.tmp<suffix>
+
+
+def clean_stale_temps(directory: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files and staging folders (see the module doc) in ``directory`` whose
+    writing process is gone."""
+    removed = []
+    directory = Path(directory)
+    if not directory.is_dir():
+        return removed
+    for p in directory.glob(".*.tmp*"):
+        m = _TEMP_NAME.search(p.name)
+        if m is None or pid_alive(int(m.group(1))):
+            continue
+        try:
+            if p.is_dir():  # a staging folder (staged_dir)
+                import shutil
+
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+            removed.append(p)
+        except OSError:
+            pass
+    return removed
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (on this machine)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    except (OverflowError, ValueError):
+        return False
+    return True
 
 
 def prepare_output_dir(path: str | os.PathLike) -> Path:
-    """Check ``path`` is usable as an output directory before any work is done (created when missing)."""
+    """Check ``path`` is usable as an output directory before any work is done.
+
+    It is not created here (a command refused later leaves no empty folder behind): the nearest
+    existing folder on the way must be a writable directory. Stale temporary files of dead
+    processes in it are removed.
+    """
     from mono_map.errors import MonoMapError
 
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise MonoMapError(f"--out: {path} is a file, not a directory")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise MonoMapError(f"--out: {path}: cannot create the directory ({exc.strerror})") from None
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise MonoMapError(f"--out: {path}: cannot create the directory ({existing} is a file)")
+    check_writable_dir(existing, "--out")
+    clean_stale_temps(path)
     return path
+
+
+def check_writable_dir(path: str | os.PathLike, option: str) -> None:
+    """MonoMapError unless a file can be created in directory ``path`` (tried, then removed)."""
+    from mono_map.errors import MonoMapError
+
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".probe.{os.getpid()}.", suffix=".tmp", dir=path)
+    except OSError as exc:
+        raise MonoMapError(f"{option}: {path}: cannot write there ({exc.strerror})") from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
+def free_bytes(path: str | os.PathLike) -> int:
+    """Bytes free for unprivileged writers on the file system holding ``path`` (or its nearest existing folder)."""
+    path = Path(path)
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    st = os.statvfs(path)
+    return st.f_bavail * st.f_frsize
+
+
+def check_output_file(path: str | os.PathLike, option: str, suffix: str | None = None,
+                      min_free: int = 0) -> Path:
+    """Check an output file option before any work: not a directory, the right suffix, a writable folder."""
+    from mono_map.errors import MonoMapError
+
+    path = Path(path)
+    if suffix is not None and path.suffix.lower() != suffix:
+        raise MonoMapError(f"{option}: {path}: the file name must end in {suffix}")
+    if path.is_dir():
+        raise MonoMapError(f"{option}: {path} is a directory, not a file")
+    parent = path.parent
+    if parent.exists() and not parent.is_dir():
+        raise MonoMapError(f"{option}: {parent} is a file, not a directory")
+    if parent.exists():
+        check_writable_dir(parent, option)
+    if min_free and free_bytes(parent) < min_free:
+        raise MonoMapError(f"{option}: {path}: only {free_bytes(parent) / 2**20:.1f} MB free there, "
+                           f"need at least {min_free / 2**20:.0f} MB")
+    return path
+
+
+@contextlib.contextmanager
+def quiet_native_output() -> Iterator[list[str]]:
+    """Capture what native code (e.g. OctoMap's C++ reader) prints on file descriptors 1 and 2.
+
+    Yields a list that holds the captured text (decoded, replacement characters for junk) once the
+    block ends; the caller decides whether to show it, so a corrupt file cannot flood the terminal.
+    """
+    import sys
+
+    captured: list[str] = []
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 1)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield captured
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            captured.append(sink.read(4096).decode("utf-8", "replace"))
 
 
 def _read_umask() -> int:

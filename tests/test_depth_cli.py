@@ -1,4 +1,4 @@
-"""CLI: frame selection, predict on an image folder, eval-depth on the real KITTI object frames."""
+"""CLI: predict on an image folder, eval-depth on the real KITTI object frames."""
 
 import json
 
@@ -8,24 +8,12 @@ import torch
 
 from mono_map.cli import main
 from mono_map.data.depth_png import read_depth_png
-from mono_map.depth.commands import parse_frames
 from mono_map.depth.inference import save_checkpoint
 from mono_map.depth.networks import DepthNet, named_config
-from mono_map.errors import MonoMapError
 
 
 TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),
             num_bins=16, input_height=64, input_width=192)
-
-
-def test_parse_frames():
-    assert parse_frames("0:10:5", 100) == [0, 5]
-    assert parse_frames("3,7", 10) == [3, 7]
-    assert parse_frames(None, 3) == [0, 1, 2]
-    with pytest.raises(MonoMapError, match="--frames"):
-        parse_frames("5,20", 10)
-    with pytest.raises(MonoMapError, match="--frames"):
-        parse_frames("a:b", 10)
 
 
 @pytest.fixture

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import gzip
-import shutil
 from pathlib import Path
 
 import cv2
@@ -28,11 +27,23 @@ from mono_map.paths import KITTI_ASSETS_DIR
 H, W = 24, 40  # tiny images keep the hand-made sequence fast
 
 
+def scaled_calib_text(w: int, h: int) -> str:
+    """Real KITTI 00 calibration with the projections scaled to w×h images (as resizing would need)."""
+    lines = []
+    for line in (KITTI_ASSETS_DIR / "calib_00.txt").read_text().splitlines():
+        key, vals = line.split(":", 1)
+        v = np.array([float(x) for x in vals.split()])
+        if key.startswith("P"):
+            v = v.reshape(3, 4) * np.array([[w / 1241], [h / 376], [1.0]])
+        lines.append(f"{key}: " + " ".join(f"{x:.12e}" for x in v.ravel()))
+    return "\n".join(lines) + "\n"
+
+
 def make_sequence(root: Path, name: str = "42", n: int = 5, velodyne: bool = True) -> Path:
-    """A hand-made KITTI-layout sequence: real 00 calib and poses, tiny images, small scans."""
+    """A hand-made KITTI-layout sequence: real 00 calib (scaled to the tiny images) and poses, small scans."""
     seq = root / "sequences" / name
     (seq / "image_2").mkdir(parents=True)
-    shutil.copy(KITTI_ASSETS_DIR / "calib_00.txt", seq / "calib.txt")
+    (seq / "calib.txt").write_text(scaled_calib_text(W, H))
     (root / "poses").mkdir(exist_ok=True)
     lines = gzip.decompress((KITTI_ASSETS_DIR / "poses" / "00.txt.gz").read_bytes()).decode().splitlines()
     (root / "poses" / f"{name}.txt").write_text("\n".join(lines[:n]) + "\n")
@@ -174,12 +185,27 @@ def test_pose_count_mismatch(tmp_path):
 
 
 def test_unreadable_and_wrong_size_images(tmp_path):
+    """Every image's header is checked when the sequence is opened, before any work."""
     seq_dir = make_sequence(tmp_path)
+    good = (seq_dir / "image_2" / "000003.png").read_bytes()
     (seq_dir / "image_2" / "000003.png").write_bytes(b"not a png")
-    seq = KittiSequence(tmp_path, "42")
-    expect_error(r"000003.png: unreadable image", seq.image, 3)
-    cv2.imwrite(str(seq_dir / "image_2" / "000004.png"), np.zeros((H + 1, W, 3), np.uint8))
-    expect_error(r"000004.png: image is 40×25, expected 40×24", seq.image, 4)
+    expect_error(r"000003.png: unreadable image", KittiSequence, tmp_path, "42")
+    (seq_dir / "image_2" / "000003.png").write_bytes(good)
+    cv2.imwrite(str(seq_dir / "image_2" / "000000.png"), np.zeros((H + 1, W, 3), np.uint8))
+    expect_error(r"000000.png: image is 40×25, the sequence's other images are 40×24", KittiSequence, tmp_path, "42")
+
+
+def test_images_resized_against_the_calibration_refused(tmp_path):
+    seq_dir = make_sequence(tmp_path)
+    (seq_dir / "calib.txt").write_text(scaled_calib_text(2 * W, 2 * H))
+    expect_error(r"image_2: images are 40×24 but calib.txt's principal point .* about 78×47",
+                 KittiSequence, tmp_path, "42")
+
+
+def test_grayscale_image_refused(tmp_path):
+    seq_dir = make_sequence(tmp_path)
+    cv2.imwrite(str(seq_dir / "image_2" / "000002.png"), np.zeros((H, W), np.uint8))
+    expect_error(r"000002.png: grayscale image", KittiSequence, tmp_path, "42")
 
 
 def test_bad_velodyne_size(tmp_path):

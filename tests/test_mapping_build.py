@@ -13,7 +13,7 @@ from mono_map.config import OctoMapConfig
 from mono_map.data.kitti import open_sequence
 from mono_map.depth.inference import DepthPrediction
 from mono_map.errors import MonoMapError
-from mono_map.mapping.build import build_map, parse_frames
+from mono_map.mapping.build import build_map
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 from mono_map.mapping.points import camera_origin, in_camera_fov, lidar_to_world, pixels_to_world
@@ -93,16 +93,6 @@ def test_keep_fraction_exact(keep):
     assert not (kept2 & ~grid).any()
 
 
-def test_parse_frames():
-    assert parse_frames(None, 4541)[0] == range(0, 500)
-    assert "first 500" in parse_frames(None, 4541)[1]
-    assert parse_frames("all", 10)[0] == range(0, 10)
-    assert parse_frames("2:5", 10)[0] == range(2, 5)
-    for bad in ("5:2", "x", "0:99"):
-        with pytest.raises(MonoMapError, match="--frames"):
-            parse_frames(bad, 10)
-
-
 class Recorder:
     def __init__(self):
         self.updates, self.closed = [], False
@@ -115,7 +105,7 @@ class Recorder:
 
 
 def test_build_mono_oracle_observers(tiny_root):
-    seq = open_sequence(tiny_root, "tiny", generate=False)
+    seq = open_sequence(tiny_root, "tiny")
     rec = Recorder()
     res = build_map(seq, "mono", 0.5, frames=range(0, 2), stride=4, predictor=NoisyGroundTruthPredictor(),
                     observers=[rec], show_progress=False)
@@ -198,7 +188,7 @@ def test_cli_bad_inputs_write_nothing(tiny_root, tmp_path, capsys, argv, message
 
 @pytest.mark.parametrize("kind, message", [("nan", "NaN"), ("empty", "empty frame")])
 def test_bad_predictions(tiny_root, kind, message):
-    seq = open_sequence(tiny_root, "tiny", generate=False)
+    seq = open_sequence(tiny_root, "tiny")
     rec = Recorder()
     with pytest.raises(MonoMapError, match=message):
         build_map(seq, "mono", 0.8, frames=range(0, 1), predictor=BadPredictor(kind), observers=[rec],
@@ -288,7 +278,7 @@ class SkyTopPredictor:
 
 
 def test_build_never_inserts_beyond_range_pixels(tiny_root):
-    seq = open_sequence(tiny_root, "tiny", generate=False)
+    seq = open_sequence(tiny_root, "tiny")
     rec = Recorder()
     build_map(seq, "mono", 0.5, frames=range(0, 1), stride=4, predictor=SkyTopPredictor(), observers=[rec],
               show_progress=False)

@@ -21,8 +21,6 @@ PACKAGE = "mono_map"
 
 # Import cycles (strongly connected modules) still present, owner in the comment.
 KNOWN_CYCLES: set[frozenset[str]] = {
-    # issue 13 map-pipeline row (mapping/, private _frames_needed/_frames_tag shared by both)
-    frozenset({"mono_map.mapping.commands", "mono_map.mapping.table"}),
     # issue 13 octree row (mapping/octree.py planned; lazy import in octree_from_cells)
     frozenset({"mono_map.mapping.integrate", "mono_map.mapping.octree_io"}),
 }
@@ -32,11 +30,6 @@ KNOWN_PRIVATE: set[tuple[str, str]] = {
     # issue 13 data row (synth camera/LiDAR ray casting helper)
     ("mono_map/data/synth/lidar.py", "from mono_map.data.synth.camera import _cast"),
     ("tests/test_synth.py", "from mono_map.data.synth.camera import _cast"),
-    # issue 13 map-pipeline / --frames row
-    ("mono_map/demo.py", "from mono_map.mapping.commands import _frames_tag, build_and_write, map_stem"),
-    ("mono_map/mapping/table.py", "from mono_map.mapping.commands import (_frames_needed, _frames_tag, "
-                                  "build_and_write, map_stem,"),
-    ("tools/bench_mapping.py", "from mono_map.mapping.commands import _frames_needed"),
     # issue 13 octree row (Morton codes in mapping/octree.py)
     ("mono_map/eval/map_metrics.py", "from mono_map.mapping.raycast import TREE_MAX_VAL, _spread_bits"),
     ("mono_map/mapping/octree_io.py", "from mono_map.mapping.raycast import _spread_bits"),
@@ -51,7 +44,6 @@ KNOWN_UPWARD: set[tuple[str, str]] = {
     ("mono_map.depth.evaluate", "mono_map.eval.sparsification"),
     # mapping/table.py is a command living in mapping/ (issue 13 map-pipeline row)
     ("mono_map.mapping.table", "mono_map.eval.map_metrics"),
-    ("mono_map.mapping.table", "mono_map.mapping.commands"),
     ("mono_map.mapping.table", "mono_map.viz.plots"),
 }
 

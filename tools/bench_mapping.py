@@ -28,9 +28,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mono_map.config import OctoMapConfig  # noqa: E402
-from mono_map.data.kitti import open_sequence  # noqa: E402
+from mono_map.data.prepare import prepare_sequence  # noqa: E402
 from mono_map.eval.map_metrics import tree_leaves  # noqa: E402
-from mono_map.mapping.build import parse_frames  # noqa: E402
+from mono_map.frames import first_frames, parse_frames  # noqa: E402
 from mono_map.mapping.integrate import MapIntegrator  # noqa: E402
 from mono_map.mapping.points import camera_origin, pixels_to_world  # noqa: E402
 from mono_map.mapping.reference import lidar_measurement  # noqa: E402
@@ -48,10 +48,10 @@ def integrate_timed(integrator: MapIntegrator, scans) -> tuple[MapIntegrator, fl
 
 
 def load_scans(args) -> list[tuple[np.ndarray, np.ndarray]]:
-    from mono_map.mapping.commands import _frames_needed
-
-    seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))  # generate only the prefix needed
-    frames, desc = parse_frames(args.frames, len(seq))
+    selection = parse_frames(args.frames, default=first_frames(500))
+    seq = prepare_sequence(args.data_root, args.seq, selection)  # renders only the prefix needed
+    frames = selection.resolve(len(seq))
+    desc = selection.describe(frames)
     print(f"sequence {args.seq}, {desc}, source {args.source}")
     scans = []
     predictor = None

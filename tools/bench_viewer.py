@@ -38,16 +38,11 @@ class CountingObserver:
         self.freed += len(u.freed_keys_changed)
 
 
-def parse_frames(text: str) -> tuple[int, int]:
-    a, b = text.split(":")
-    return int(a), int(b)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seq", default="00")
     ap.add_argument("--data-root", default=None)
-    ap.add_argument("--frames", default="0:20", help="a:b frame range (default 0:20)")
+    ap.add_argument("--frames", default="0:20", help="the --frames grammar (default 0:20)")
     ap.add_argument("--source", default="lidar-fov", help="mono | lidar | lidar-fov (default lidar-fov)")
     ap.add_argument("--keep", type=float, default=0.8)
     ap.add_argument("--model", default=None,
@@ -60,14 +55,14 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(2)
-    from mono_map.data.kitti import open_sequence
+    from mono_map.data.prepare import prepare_sequence
+    from mono_map.frames import parse_frames
     from mono_map.mapping.build import build_map
-    from mono_map.paths import data_root
     from mono_map.viz.rerun_stream import RerunMapLogger
 
-    a, b = parse_frames(args.frames)
-    seq = open_sequence(data_root(args.data_root), args.seq, frames=b)
-    frames = list(range(a, b))
+    selection = parse_frames(args.frames)
+    seq = prepare_sequence(args.data_root, args.seq, selection)
+    frames = selection.resolve(len(seq))
     os.environ.setdefault("MONO_MAP_PROGRESS", "0")
     predictor = None
     if args.source == "mono":

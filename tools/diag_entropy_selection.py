@@ -17,7 +17,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mono_map.data.depth_png import read_depth_png  # noqa: E402
-from mono_map.data.kitti import open_sequence  # noqa: E402
+from mono_map.data.prepare import prepare_sequence  # noqa: E402
+from mono_map.frames import parse_frames  # noqa: E402
 from mono_map.mapping.build import load_predictor  # noqa: E402
 from mono_map.mapping.select import select_pixels  # noqa: E402
 
@@ -30,15 +31,15 @@ def main() -> int:
     ap.add_argument("--model", default=None, help="checkpoint (default: shipped binary)")
     ap.add_argument("--data-root", default=None)
     args = ap.parse_args()
-    a, b, c = (int(x) for x in args.frames.split(":"))
-    seq = open_sequence(args.data_root, args.seq, frames=b)
+    selection = parse_frames(args.frames)
+    seq = prepare_sequence(args.data_root, args.seq, selection)
     depth_dir = Path(seq.root) / "sequences" / args.seq / "depth_2"
     if not depth_dir.is_dir():
         print(f"{depth_dir}: no dense ground truth (synthetic sequences only)", file=sys.stderr)
         return 2
     predictor = load_predictor(args.model)
     rows = []
-    for i in range(a, min(b, len(seq)), c):
+    for i in selection.resolve(len(seq)):
         p = predictor.predict(seq.image(i))
         gt = read_depth_png(depth_dir / f"{i:06d}.png")
         sky = gt <= 0

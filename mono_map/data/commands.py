@@ -13,7 +13,9 @@ def register(subparsers) -> None:
                     "calib.txt, times.txt, poses/NAME.txt) from its recipe.  Existing frames of the same recipe are "
                     "kept, so asking for more frames extends a prefix.")
     p.add_argument("--seq", required=True, help="recipe name (sequences/NAME.toml, e.g. 00) or path to a .toml")
-    p.add_argument("--frames", type=int, default=None, help="number of frames from the start (default: the recipe's)")
+    p.add_argument("--frames", default=None,
+                   help="frames to have (the --frames grammar: N, A:B, 'all'; the prefix up to the last one is "
+                        "rendered; default: all of the recipe's)")
     p.add_argument("--data-root", default=None, help="KITTI odometry root (default $MONO_MAP_DATA or ./data/kitti)")
     p.add_argument("--workers", type=int, default=2, help="parallel render processes (default 2)")
     p.add_argument("--force", action="store_true", help="re-render every frame even if present")
@@ -23,16 +25,21 @@ def register(subparsers) -> None:
 def run_synth(args: argparse.Namespace) -> int:
     import time
 
+    from mono_map.data.prepare import check_data_root
     from mono_map.data.synth import generate_sequence, load_recipe
     from mono_map.errors import MonoMapError
-    from mono_map.paths import data_root
+    from mono_map.frames import parse_frames
 
+    frames = parse_frames(args.frames)
+    if args.workers < 1:
+        raise MonoMapError(f"--workers: must be >= 1, got {args.workers}")
     recipe = load_recipe(args.seq)
-    if args.frames is not None and args.frames < 1:
-        raise MonoMapError(f"--frames: must be >= 1, got {args.frames}")
-    root = data_root(args.data_root)
+    n = frames.needed()
+    if n is not None and n > recipe.frames:
+        raise MonoMapError(f"--frames: {frames.text!r} needs {n} frames; recipe {recipe.name} has {recipe.frames}")
+    root = check_data_root(args.data_root)
     t0 = time.perf_counter()
-    seq_dir = generate_sequence(recipe, root, frames=args.frames, workers=args.workers, force=args.force)
+    seq_dir = generate_sequence(recipe, root, frames=n, workers=args.workers, force=args.force)
     dt = time.perf_counter() - t0
     from mono_map.data.synth.writer import read_marker
 

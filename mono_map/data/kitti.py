@@ -1,4 +1,4 @@
-"""KITTI odometry sequences (real or synthetic) read through ``pykitti.odometry``.
+"""KITTI odometry sequences (real or synthetic): a pure validating reader (it never renders or writes).
 
 Layout under a data root (the standard KITTI odometry download)::
 
@@ -10,17 +10,16 @@ Layout under a data root (the standard KITTI odometry download)::
     poses/XX.txt                      T_world_cam0, 3×4 per line; world = first cam0 frame
 
 Every file is validated before use; bad input raises :class:`MonoMapError` naming the
-file.  Real and synthetic sequences are read alike, except that a synthetic one (``synth.json``)
-is read only up to the frames its marker vouches for, and ``open_sequence`` may generate it first.
+file.  Opening a sequence checks the listing, calibration, poses, times and every image's PNG
+header (size, colour) against the calibration. Real and synthetic sequences read alike; a synthetic
+one's ``synth.json`` only says how many frames are complete (rendering a missing synthetic sequence
+is the commands' job: :mod:`mono_map.data.prepare`).
 """
 
 from __future__ import annotations
 
-import contextlib
-import io
 import os
 from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -30,25 +29,18 @@ from mono_map.errors import MonoMapError
 from mono_map.paths import data_root
 
 # ---------------------------------------------------------------------------------------------
-# Validating parsers (array in / array out).  pykitti does the same parsing without checks.
+# Validating parsers (array in / array out).
 # ---------------------------------------------------------------------------------------------
 
 REQUIRED_CALIB_KEYS = ("P2", "Tr")
 
 
-def read_calib_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Parse a KITTI ``calib.txt`` tolerantly (trailing spaces, no final newline).
+def parse_calib_text(text: str, path: str | os.PathLike = "<calib>") -> dict[str, np.ndarray]:
+    """The one KITTI calibration parser: ``KEY: numbers`` lines → ``{key: float64 array}``.
 
-    Returns ``{key: float64 array}``; checks that P2 and Tr hold 12 finite numbers,
-    that P2's focal lengths are positive and that Tr's rotation is orthonormal.
+    Tolerant of trailing spaces, blank lines and a missing final newline; a line without ':'
+    or with a non-numeric value raises MonoMapError naming ``path`` and the line.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise MonoMapError(f"{path}: calibration file not found")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise MonoMapError(f"{path}: unreadable calibration file ({exc})") from None
     data: dict[str, np.ndarray] = {}
     for lineno, line in enumerate(text.splitlines(), 1):
         if not line.strip():
@@ -60,6 +52,26 @@ def read_calib_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
             data[key.strip()] = np.array([float(x) for x in value.split()], dtype=np.float64)
         except ValueError:
             raise MonoMapError(f"{path}:{lineno}: non-numeric value in calibration entry '{key.strip()}'") from None
+    return data
+
+
+def _read_text(path: Path, what: str) -> str:
+    if not path.is_file():
+        raise MonoMapError(f"{path}: {what} not found")
+    try:
+        return path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MonoMapError(f"{path}: unreadable {what} (not text: {exc.__class__.__name__})") from None
+
+
+def read_calib_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Parse and check a KITTI odometry ``calib.txt``.
+
+    Returns ``{key: float64 array}``; checks that P2 and Tr hold 12 finite numbers,
+    that P2's focal lengths are positive and that Tr's rotation is orthonormal.
+    """
+    path = Path(path)
+    data = parse_calib_text(_read_text(path, "calibration file"), path)
     for key in REQUIRED_CALIB_KEYS:
         if key not in data:
             raise MonoMapError(f"{path}: calibration entry '{key}' missing (need {', '.join(REQUIRED_CALIB_KEYS)})")
@@ -77,10 +89,8 @@ def read_calib_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
 def read_poses_file(path: str | os.PathLike) -> np.ndarray:
     """Read KITTI poses (12 numbers a line, T_world_cam0 3×4) as float64 (N, 4, 4)."""
     path = Path(path)
-    if not path.is_file():
-        raise MonoMapError(f"{path}: poses file not found")
     rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(_read_text(path, "poses file").splitlines(), 1):
         if not line.strip():
             continue
         try:
@@ -108,10 +118,9 @@ def read_poses_file(path: str | os.PathLike) -> np.ndarray:
 def read_times_file(path: str | os.PathLike) -> np.ndarray:
     """Read ``times.txt`` (one timestamp in seconds a line) as float64 (N,)."""
     path = Path(path)
-    if not path.is_file():
-        raise MonoMapError(f"{path}: timestamps file not found")
+    text = _read_text(path, "timestamps file")
     try:
-        times = np.array([float(x) for x in path.read_text().split()], dtype=np.float64)
+        times = np.array([float(x) for x in text.split()], dtype=np.float64)
     except ValueError:
         raise MonoMapError(f"{path}: non-numeric timestamp") from None
     if not np.all(np.isfinite(times)):
@@ -126,6 +135,8 @@ def read_velodyne_bin(path: str | os.PathLike) -> np.ndarray:
         size = path.stat().st_size
     except OSError:
         raise MonoMapError(f"{path}: velodyne scan not found") from None
+    if size == 0:
+        raise MonoMapError(f"{path}: velodyne scan is empty (0 bytes)")
     if size % 16:
         raise MonoMapError(f"{path}: velodyne scan size {size} B is not a multiple of 16 (4 float32 per point)")
     scan = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
@@ -135,13 +146,59 @@ def read_velodyne_bin(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_image_rgb(path: str | os.PathLike) -> np.ndarray:
-    """Read an image as H×W×3 uint8 RGB."""
+    """Read a colour image as H×W×3 uint8 RGB (an alpha channel is dropped; grayscale is refused)."""
     import cv2
 
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise MonoMapError(f"{path}: unreadable image")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    if img.ndim == 2 or img.shape[2] == 1:
+        raise MonoMapError(f"{path}: grayscale image; a colour (RGB) image is needed (KITTI's image_2)")
+    if img.dtype != np.uint8:
+        raise MonoMapError(f"{path}: {img.dtype} image; an 8-bit colour image is needed")
+    return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_GRAY_TYPES = (0, 4)  # IHDR colour types: 0 gray, 2 RGB, 3 palette, 4 gray+alpha, 6 RGBA
+
+
+def read_png_header(path: str | os.PathLike) -> tuple[int, int, int]:
+    """(width, height, colour type) from a PNG's IHDR chunk, without decoding the image."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(26)
+    except OSError as exc:
+        raise MonoMapError(f"{path}: unreadable image ({exc.strerror})") from None
+    if len(head) < 26 or not head.startswith(PNG_SIGNATURE) or head[12:16] != b"IHDR":
+        raise MonoMapError(f"{path}: unreadable image (not a PNG file)")
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big"), head[25]
+
+
+def check_images(files: list[Path], P2: np.ndarray, calib_path: Path) -> tuple[int, int]:
+    """Check every image_2 PNG header: one size, colour, and the calibration made for that size.
+
+    Returns (H, W). The calibration holds no image size, but its principal point lies near the
+    image centre; a point outside the image's middle half means the images were resized (or
+    the calibration belongs to other images) and the intrinsics would back-project wrongly.
+    """
+    from collections import Counter
+
+    headers = [read_png_header(f) for f in files]
+    sizes = Counter((w, h) for w, h, _ in headers)
+    (W, H), _ = sizes.most_common(1)[0]
+    for f, (w, h, colour) in zip(files, headers):
+        if (w, h) != (W, H):
+            raise MonoMapError(f"{f}: image is {w}×{h}, the sequence's other images are {W}×{H}")
+        if colour in PNG_GRAY_TYPES:
+            raise MonoMapError(f"{f}: grayscale image; image_2 must be colour (RGB)")
+    cx, cy = float(P2[0, 2]), float(P2[1, 2])
+    if not (0.25 * W < cx < 0.75 * W and 0.25 * H < cy < 0.75 * H):
+        raise MonoMapError(
+            f"{files[0].parent}: images are {W}×{H} but {calib_path.name}'s principal point ({cx:.1f}, {cy:.1f}) "
+            f"is made for images of about {2 * cx:.0f}×{2 * cy:.0f}: resized images? (scale P2 with them)")
+    return H, W
 
 
 # ---------------------------------------------------------------------------------------------
@@ -188,17 +245,7 @@ def read_object_calibration(path: str | os.PathLike) -> Calibration:
     R0_rect · Tr_velo_to_cam, which is what the odometry ``Tr`` already is.
     """
     path = Path(path)
-    if not path.is_file():
-        raise MonoMapError(f"{path}: calibration file not found")
-    data: dict[str, np.ndarray] = {}
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
-        if ":" not in line:
-            continue
-        key, value = line.split(":", 1)
-        try:
-            data[key.strip()] = np.array([float(x) for x in value.split()], dtype=np.float64)
-        except ValueError:
-            raise MonoMapError(f"{path}:{lineno}: non-numeric value in calibration entry '{key.strip()}'") from None
+    data = parse_calib_text(_read_text(path, "calibration file"), path)
     sizes = {"P2": 12, "R0_rect": 9, "Tr_velo_to_cam": 12}
     for key, size in sizes.items():
         if key not in data or data[key].size != size:
@@ -212,8 +259,6 @@ class KittiSequence:
     """A validated KITTI odometry sequence under ``root`` (real or synthetic)."""
 
     def __init__(self, root: str | os.PathLike, name: str):
-        import pykitti
-
         self.root = Path(root)
         self.name = name
         self.path = self.root / "sequences" / name
@@ -225,13 +270,8 @@ class KittiSequence:
         times = read_times_file(self.path / "times.txt")
         pose_path = self.root / "poses" / f"{name}.txt"
         poses = read_poses_file(pose_path) if pose_path.is_file() else None
-
-        # pykitti lists the files and loads calib, timestamps and poses (it prints when
-        # poses are absent, as for KITTI's test sequences 11-21: keep that quiet).
-        with contextlib.redirect_stdout(io.StringIO()):
-            self._kitti = pykitti.odometry(str(self.root), name)
-        self.image_files = [Path(f) for f in self._kitti.cam2_files]
-        self.velodyne_files = [Path(f) for f in self._kitti.velo_files]
+        self.image_files = _listing(self.path / "image_2", ".png")
+        self.velodyne_files = _listing(self.path / "velodyne", ".bin")
         # A synthetic prefix being extended in place briefly holds more frames than its
         # marker, poses and times: read only the frames the marker vouches for.
         n_marked = self._synthetic_frame_count()
@@ -248,6 +288,7 @@ class KittiSequence:
         if self.velodyne_files and len(self.velodyne_files) != n:
             raise MonoMapError(
                 f"{self.path / 'velodyne'}: {len(self.velodyne_files)} scans for {n} images in image_2/")
+        self.image_size = check_images(self.image_files, self.calib.P2, self.path / "calib.txt")
         self.times = times
         self.poses_cam0 = poses
         self.pose_path = pose_path
@@ -260,9 +301,12 @@ class KittiSequence:
         if not marker.is_file():
             return None
         try:
-            n = int(json.loads(marker.read_text())["n_frames"])
-        except (ValueError, KeyError, TypeError):
-            raise MonoMapError(f"{marker}: malformed synthetic-sequence marker (no integer n_frames)") from None
+            n = json.loads(marker.read_text())["n_frames"]
+        except (ValueError, KeyError, TypeError, IndexError, UnicodeDecodeError):
+            n = None
+        if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+            raise MonoMapError(f"{marker}: malformed synthetic-sequence marker (no positive integer n_frames; "
+                               f"re-render with mono-map synth --seq {self.name} --force)")
         return n
 
     def __len__(self) -> int:
@@ -281,11 +325,6 @@ class KittiSequence:
         """True for sequences written by mono-map's generator (they carry ``synth.json``)."""
         return (self.path / "synth.json").is_file()
 
-    @cached_property
-    def image_size(self) -> tuple[int, int]:
-        """(H, W) of image_2, from the first image; every image must match it."""
-        return tuple(read_image_rgb(self.image_files[0]).shape[:2])  # type: ignore[return-value]
-
     def T_world_cam0(self, i: int) -> np.ndarray:
         if self.poses_cam0 is None:
             raise MonoMapError(f"{self.pose_path}: poses not available for sequence '{self.name}'")
@@ -301,7 +340,7 @@ class KittiSequence:
         img = read_image_rgb(path)
         if img.shape[:2] != self.image_size:
             raise MonoMapError(f"{path}: image is {img.shape[1]}×{img.shape[0]}, "
-                               f"expected {self.image_size[1]}×{self.image_size[0]} like the sequence's first image")
+                               f"expected {self.image_size[1]}×{self.image_size[0]} like the sequence's other images")
         return img
 
     def velodyne(self, i: int) -> np.ndarray:
@@ -330,17 +369,18 @@ class KittiSequence:
         return geometry.lidar_depth_image(pts_cam2, self.calib.K2, *self.image_size)
 
 
-def open_sequence(root: str | os.PathLike | None, name: str, frames: int | None = None,
-                  generate: bool = True) -> KittiSequence:
-    """Open sequence ``name`` under ``root`` (``None`` → :func:`mono_map.paths.data_root`).
+def open_sequence(root: str | os.PathLike | None, name: str) -> KittiSequence:
+    """Open and validate sequence ``name`` under ``root`` (``None`` → :func:`mono_map.paths.data_root`).
 
-    If the root lacks it (or holds a shorter synthetic prefix than ``frames``) and a
-    recipe ``sequences/<name>.toml`` exists, the synthetic sequence is generated first,
-    saying so.  Real KITTI sequences are never modified.
+    Only reads; a command that may render a missing synthetic sequence calls
+    :func:`mono_map.data.prepare.prepare_sequence` instead.
     """
-    root = data_root(root)
-    if generate:
-        from mono_map.data.synth import ensure_sequence
+    return KittiSequence(data_root(root), name)
 
-        ensure_sequence(root, name, frames=frames)
-    return KittiSequence(root, name)
+
+def _listing(folder: Path, suffix: str) -> list[Path]:
+    """Files ``folder/*suffix`` in name order (KITTI's NNNNNN names; hidden temporary files are not
+    frames); [] if the folder is missing."""
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.suffix == suffix and not p.name.startswith(".") and p.is_file())

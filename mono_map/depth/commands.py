@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mono_map.frames import FrameSelection, parse_frames
+
 SHIPPED_HEADS = ("binary", "softmax", "gaussian", "ordinal")
 
 
@@ -24,7 +26,8 @@ def register(subparsers) -> None:
     src.add_argument("--seq", help="sequence name under the data root (e.g. 00)")
     src.add_argument("--images", help="folder of .png/.jpg images")
     p.add_argument("--data-root", default=None)
-    p.add_argument("--frames", default=None, help="frame selection start:stop[:step] or a comma list (sequences)")
+    p.add_argument("--frames", default=None,
+                   help="with --seq: N (the first N), A:B[:S], I,J,... or 'all' (default all)")
     p.add_argument("--model", default=None, help="checkpoint path or shipped head name (default: binary)")
     p.add_argument("--out", default="outputs/predict", help="output folder")
     p.add_argument("--npz", action="store_true", help="also save the K×h×w distributions (float16, model resolution)")
@@ -34,7 +37,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("eval-depth", help="depth metrics, uncertainty AUCs, oracle hypotheses of the heads")
     p.add_argument("--seq", default="00", help="evaluation sequence (default 00, the held-out town)")
     p.add_argument("--data-root", default=None)
-    p.add_argument("--frames", default="0:500:10", help="start:stop[:step] or comma list (default 0:500:10)")
+    p.add_argument("--frames", default=None,
+                   help="N (the first N), A:B[:S], I,J,... or 'all' (default 0:500:10, fewer in a shorter sequence)")
     p.add_argument("--model", action="append", default=None,
                    help="checkpoint path or shipped head name; repeat for several (default: all shipped)")
     p.add_argument("--gt", choices=("lidar", "dense"), default="lidar", help="ground truth: projected LiDAR or dense depth_2")
@@ -51,33 +55,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_eval_depth)
 
 
-def parse_frames(spec: str | None, n: int, option: str = "--frames") -> list[int]:
-    """'a:b[:c]' (Python slice) or '1,5,9' -> frame indices within [0, n)."""
-    from mono_map.errors import MonoMapError
-
-    if not spec:
-        return list(range(n))
-    try:
-        if ":" in spec:
-            parts = [int(x) if x else None for x in spec.split(":")]
-            idx = list(range(n))[slice(*parts)]
-        else:
-            idx = [int(x) for x in spec.split(",")]
-    except ValueError:
-        raise MonoMapError(f"{option}: cannot parse {spec!r} (use start:stop[:step] or a comma list)") from None
-    bad = [i for i in idx if not 0 <= i < n]
-    if bad or not idx:
-        raise MonoMapError(f"{option}: frames {bad[:5] or spec} outside the sequence's 0..{n - 1}")
-    return idx
-
-
-def _frame_stop(spec: str | None) -> int | None:
-    if spec and ":" in spec:
-        parts = spec.split(":")
-        return int(parts[1]) if len(parts) > 1 and parts[1] else None
-    if spec:
-        return max(int(x) for x in spec.split(",")) + 1
-    return None
+EVAL_FRAMES = FrameSelection("0:500:10", stop=500, step=10, up_to=True)  # eval-depth's default
 
 
 def run_train(args) -> int:
@@ -106,56 +84,79 @@ def run_train(args) -> int:
 
 
 def run_predict(args) -> int:
-    import cv2
-    import numpy as np
-
-    from mono_map.data.depth_png import write_depth_png
     from mono_map.depth.inference import DepthPredictor
     from mono_map.errors import MonoMapError
-    from mono_map.io import atomic_path
+    from mono_map.io import prepare_output_dir, staged_dir
     from mono_map.progress import progress
     from mono_map.viz.codec import colourise
 
+    if args.images and args.frames is not None:
+        raise MonoMapError("--frames: selects frames of a --seq, not of an --images folder")
+    selection = parse_frames(args.frames)
+    if args.images and not Path(args.images).is_dir():
+        raise MonoMapError(f"--images: {args.images}: no such folder")
+    out = prepare_output_dir(args.out)
     pred = DepthPredictor.load(args.model, space=args.space)
-    out = Path(args.out)
     if args.seq:
-        from mono_map.data.kitti import open_sequence
+        from mono_map.data.prepare import prepare_sequence
 
-        seq = open_sequence(args.data_root, args.seq, frames=_frame_stop(args.frames))
-        idx = parse_frames(args.frames, len(seq))
+        seq = prepare_sequence(args.data_root, args.seq, selection)
+        idx = selection.resolve(len(seq))
         items = [(f"{i:06d}", (lambda i=i: seq.image(i))) for i in idx]
     else:
-        from mono_map.data.kitti import read_image_rgb
+        from mono_map.data.kitti import PNG_GRAY_TYPES, read_image_rgb, read_png_header
 
         folder = Path(args.images)
         files = sorted(p for p in folder.glob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
         if not files:
             raise MonoMapError(f"{folder}: no .png/.jpg images")
+        for f in files:  # every file checked before the first prediction is written
+            if f.suffix.lower() == ".png":
+                if read_png_header(f)[2] in PNG_GRAY_TYPES:
+                    raise MonoMapError(f"{f}: grayscale image; a colour (RGB) image is needed")
+            elif f.read_bytes()[:3] != b"\xff\xd8\xff":
+                raise MonoMapError(f"{f}: unreadable image (not a JPEG file)")
         items = [(p.stem, (lambda p=p: read_image_rgb(p))) for p in files]
-    logk = float(np.log(pred.bins.num_bins))
-    for sub in ("depth", "entropy", "vis"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    for name, load in progress(items, total=len(items), desc="predict", unit="frame"):
-        img = load()
-        p = pred.predict(img)
-        write_depth_png(out / "depth" / f"{name}.png", p.depth)
-        with atomic_path(out / "entropy" / f"{name}.png") as tmp:  # uint16, nats × 10000
-            cv2.imwrite(str(tmp), np.clip(np.round(p.entropy * 10000), 0, 65535).astype(np.uint16))
-        vis = np.concatenate([img, colourise(1.0 / p.depth, 1.0 / pred.bins.max_depth, 1.0 / 3.0, "magma"),
-                              colourise(p.entropy, 0.0, logk if pred.cfg.head != "gaussian" else 2.0, "viridis")], 0)
-        with atomic_path(out / "vis" / f"{name}.jpg") as tmp:
-            cv2.imwrite(str(tmp), cv2.cvtColor(vis, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])
-        if args.npz:
-            import torch
-
-            raw, _ = pred.raw_outputs([img])
-            probs = pred.decode(raw, with_probs=True)["probs"]
-            with atomic_path(out / "npz" / f"{name}.npz") as tmp:
-                np.savez_compressed(tmp, probs=None if probs is None else probs[0].numpy().astype(np.float16),
-                                    bin_centres=pred.bins.centres, depth=p.depth, entropy=p.entropy,
-                                    p_beyond=p.p_beyond)
+    with staged_dir(out) as stage:  # every prediction appears when all are done, none if one fails
+        for sub in ("depth", "entropy", "beyond", "vis") + (("npz",) if args.npz else ()):
+            (stage / sub).mkdir()
+        for name, load in progress(items, total=len(items), desc="predict", unit="frame"):
+            predict_one(pred, name, load(), stage, args.npz)
     print(f"wrote {len(items)} predictions to {out}/(depth|entropy|vis{'|npz' if args.npz else ''})")
     return 0
+
+
+def predict_one(pred, name: str, img, out: Path, npz: bool) -> None:
+    """Write one image's depth (KITTI uint16 PNG), entropy (uint16, nats × 10000), probability of no
+    surface within range (``beyond/``, uint8, × 255), picture and optionally its distributions under ``out``."""
+    import cv2
+    import numpy as np
+
+    from mono_map.data.depth_png import write_depth_png
+    from mono_map.io import atomic_path
+    from mono_map.viz.codec import colourise
+
+    logk = float(np.log(pred.bins.num_bins))
+    p = pred.predict(img)
+    write_depth_png(out / "depth" / f"{name}.png", p.depth)
+    with atomic_path(out / "entropy" / f"{name}.png") as tmp:  # uint16, nats × 10000
+        cv2.imwrite(str(tmp), np.clip(np.round(p.entropy * 10000), 0, 65535).astype(np.uint16))
+    with atomic_path(out / "beyond" / f"{name}.png") as tmp:
+        cv2.imwrite(str(tmp), np.clip(np.round(p.p_beyond * 255), 0, 255).astype(np.uint8))
+    rows = [img, colourise(1.0 / p.depth, 1.0 / pred.bins.max_depth, 1.0 / 3.0, "magma"),
+            colourise(p.entropy, 0.0, logk if pred.cfg.head != "gaussian" else 2.0, "viridis")]
+    if pred.cfg.beyond:   # a fourth row: where the model sees no surface within range (sky)
+        rows.append(colourise(p.p_beyond, 0.0, 1.0, "gray"))
+    vis = np.concatenate(rows, 0)
+    with atomic_path(out / "vis" / f"{name}.jpg") as tmp:
+        cv2.imwrite(str(tmp), cv2.cvtColor(vis, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    if npz:
+        raw, _ = pred.raw_outputs([img])
+        probs = pred.decode(raw, with_probs=True)["probs"]
+        with atomic_path(out / "npz" / f"{name}.npz") as tmp:
+            np.savez_compressed(tmp, probs=None if probs is None else probs[0].numpy().astype(np.float16),
+                                bin_centres=pred.bins.centres, depth=p.depth, entropy=p.entropy,
+                                p_beyond=p.p_beyond)
 
 
 def _models(args) -> list[str]:
@@ -179,6 +180,14 @@ def run_eval_depth(args) -> int:
     from mono_map.errors import MonoMapError
     from mono_map.io import write_json_atomic, write_text_atomic
 
+    from mono_map.io import prepare_output_dir
+
+    selection = parse_frames(args.frames, default=EVAL_FRAMES)
+    if args.cap <= 0 or args.cap != args.cap:
+        raise MonoMapError(f"--cap: must be a positive depth in metres, got {args.cap}")
+    if args.kitti_object and not Path(args.kitti_object).is_dir():
+        raise MonoMapError(f"--kitti-object: {args.kitti_object}: no such folder")
+    prepare_output_dir(args.out)
     torch.set_num_threads(max(1, args.threads))
     predictors = {}
     for m in _models(args):
@@ -193,16 +202,17 @@ def run_eval_depth(args) -> int:
         from mono_map.depth.evaluate import open_town, trainset_frames
 
         town = open_town(args.trainset, args.trainset_town)
-        frames = trainset_frames(town, parse_frames(args.frames, town.frames), args.gt)
+        idx = selection.resolve(town.frames)
+        frames = trainset_frames(town, idx, args.gt)
         make = lambda: iter(frames)  # noqa: E731
         n, where = len(frames), f"trainset_{args.trainset_town}"
-        title = (f"Depth evaluation on training-cache town {args.trainset_town} (frames {args.frames}, 192×634, "
+        title = (f"Depth evaluation on training-cache town {args.trainset_town} ({selection.describe(idx)}, 192×634, "
                  f"ground truth: {args.gt}, cap {args.cap:g} m)")
     else:
-        from mono_map.data.kitti import open_sequence
+        from mono_map.data.prepare import prepare_sequence
 
-        seq = open_sequence(args.data_root, args.seq, frames=_frame_stop(args.frames))
-        idx = parse_frames(args.frames, len(seq))
+        seq = prepare_sequence(args.data_root, args.seq, selection)
+        idx = selection.resolve(len(seq))
 
         def make():
             for i in idx:
@@ -212,7 +222,7 @@ def run_eval_depth(args) -> int:
                 yield f"{i:06d}", seq.image(i), gt
 
         n, where = len(idx), f"seq{args.seq}"
-        title = (f"Depth evaluation on sequence {args.seq} (frames {args.frames}, ground truth: {args.gt}"
+        title = (f"Depth evaluation on sequence {args.seq} ({selection.describe(idx)}, ground truth: {args.gt}"
                  f"{', Garg crop' if args.garg_crop else ''}, cap {args.cap:g} m)")
     results = {h: evaluate_model(p, make(), n, cap=args.cap, garg_crop=args.garg_crop, desc=f"eval {h}")
                for h, p in predictors.items()}

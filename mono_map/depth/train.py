@@ -150,8 +150,9 @@ def build_cache(cfg: RunConfig, model_cfg) -> tuple[np.ndarray, np.ndarray, Path
     """Load (or build once) the training cache -> images (N,h,w,3) uint8, depths (N,h,w) float16 metres."""
     import cv2
 
-    from mono_map.data.kitti import open_sequence
+    from mono_map.data.prepare import prepare_sequence
     from mono_map.depth.inference import fit_size
+    from mono_map.frames import first_frames
     from mono_map.paths import data_root
     from mono_map.progress import progress
 
@@ -159,7 +160,7 @@ def build_cache(cfg: RunConfig, model_cfg) -> tuple[np.ndarray, np.ndarray, Path
     root = data_root(d.root)
     jobs = []
     for name in d.sequences:
-        seq = open_sequence(root, str(name), frames=d.frames or None)
+        seq = prepare_sequence(root, str(name), first_frames(d.frames) if d.frames else None)
         n = min(len(seq), d.frames) if d.frames else len(seq)
         jobs += [(seq, i) for i in range(0, n, d.frame_step)]
     if not jobs:

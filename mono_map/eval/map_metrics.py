@@ -54,24 +54,32 @@ class Leaves:
 
 
 def load_tree(path: str | Path):
-    """Read a .bt / .ot file into an ``octomap.OcTree``; MonoMapError if missing or not an OctoMap."""
+    """Read a .bt / .ot file into an ``octomap.OcTree``; MonoMapError if missing or not an OctoMap
+    (OctoMap's own messages about a corrupt file are captured, not printed)."""
     import octomap
+
+    from mono_map.io import quiet_native_output
 
     path = Path(path)
     if not path.is_file():
         raise MonoMapError(f"{path}: map file not found")
     with open(path, "rb") as fh:
-        head = fh.read(64)
+        head = fh.read(4096)
     if not head.startswith(b"# Octomap OcTree"):
         raise MonoMapError(f"{path}: not an OctoMap file (.bt/.ot header missing)")
-    if path.suffix == ".ot":
-        tree = octomap.OcTree.read(str(path).encode())
-    else:
-        tree = octomap.OcTree(0.1)
-        if not tree.readBinary(str(path).encode()):
-            raise MonoMapError(f"{path}: OctoMap could not read this binary tree")
+    header = head.split(b"\ndata\n", 1)
+    if len(header) != 2 or not header[0].isascii():
+        raise MonoMapError(f"{path}: corrupt OctoMap header (no 'data' line after the header's text lines)")
+    with quiet_native_output() as said:
+        if path.suffix == ".ot":
+            tree = octomap.OcTree.read(str(path).encode())
+        else:
+            tree = octomap.OcTree(0.1)
+            if not tree.readBinary(str(path).encode()):
+                tree = None
     if tree is None:
-        raise MonoMapError(f"{path}: OctoMap could not read this tree")
+        first = next((ln.strip() for ln in said[0].splitlines() if ln.strip()), "")
+        raise MonoMapError(f"{path}: OctoMap could not read this tree" + (f" ({first[:120]})" if first else ""))
     return tree
 
 

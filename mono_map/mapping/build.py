@@ -25,7 +25,6 @@ from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
 from mono_map.mapping.select import check_keep, select_pixels
 
 SOURCES = ("mono",) + LIDAR_SOURCES
-DEFAULT_FRAMES = 500
 
 
 @dataclass
@@ -53,32 +52,6 @@ class BuildResult:
     stats: dict
     per_frame: list[dict]
     integrator: MapIntegrator
-
-
-def parse_frames(spec: str | None, n_total: int, default: int = DEFAULT_FRAMES) -> tuple[range, str]:
-    """``--frames`` → (range of frame indices, human description).
-
-    None → the first ``default`` frames; "all" → every frame; "a:b" → frames a..b-1 (either side
-    may be empty); "n" → the first n frames.
-    """
-    if spec is None:
-        stop = min(default, n_total)
-        return range(0, stop), f"frames 0:{stop} (default: the first {default} frames; --frames all for the whole sequence)"
-    s = str(spec).strip()
-    if s == "all":
-        return range(0, n_total), f"all {n_total} frames"
-    try:
-        if ":" in s:
-            a, b = s.split(":", 1)
-            start = int(a) if a.strip() else 0
-            stop = int(b) if b.strip() else n_total
-        else:
-            start, stop = 0, int(s)
-    except ValueError:
-        raise MonoMapError(f"--frames: expected 'a:b', 'n' or 'all', got {spec!r}") from None
-    if start < 0 or stop > n_total or start >= stop:
-        raise MonoMapError(f"--frames: {spec!r} is not a non-empty range within the sequence's {n_total} frames")
-    return range(start, stop), f"frames {start}:{stop}"
 
 
 def _close(observers: Iterable) -> None:

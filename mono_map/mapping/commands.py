@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 
 from mono_map.io import prepare_output_dir
+from mono_map.mapping.jobs import (RRD_MIN_FREE, build_and_write, check_memory, checkpoint_path, job_key, map_stem,
+                                   model_digest, read_map_sidecar, reusable)
 from mono_map.paths import sequence_output_dir
 
 SOURCES = ("mono", "lidar", "lidar-fov")
@@ -17,8 +19,8 @@ def _add_octomap_args(p: argparse.ArgumentParser) -> None:
     d = OctoMapConfig()
     g = p.add_argument_group("OctoMap (defaults are OctoMap's own)")
     g.add_argument("--res", type=float, default=d.resolution, help=f"cell size, metres (default {d.resolution})")
-    g.add_argument("--max-range", type=float, default=d.max_range,
-                   help="rays longer than this are cut and mark free space only (metres; default: unlimited)")
+    g.add_argument("--max-range", type=float, default=None,
+                   help="rays longer than this are cut and mark free space only (metres, > 0; default: unlimited)")
     g.add_argument("--prob-hit", type=float, default=d.prob_hit, help=f"default {d.prob_hit}")
     g.add_argument("--prob-miss", type=float, default=d.prob_miss, help=f"default {d.prob_miss}")
     g.add_argument("--clamp-min", type=float, default=d.clamp_min, help=f"default {d.clamp_min}")
@@ -37,7 +39,7 @@ def register(subparsers) -> None:
     _add_octomap_args(b)
     b.add_argument("--stride", type=int, default=1, help="use every S-th pixel row and column (default 1)")
     b.add_argument("--frames", default=None,
-                   help="a:b, n (first n) or 'all' (default: the first 500 frames)")
+                   help="N (the first N), A:B[:S], I,J,... or 'all' (default: the first 500 frames)")
     b.add_argument("--model", default=None,
                    help="depth checkpoint (default: the shipped binary model); 'oracle' = noisy ground truth "
                         "(synthetic sequences only, for development)")
@@ -73,188 +75,222 @@ def register(subparsers) -> None:
 
 
 def octomap_config(args):
+    """The OctoMap settings of the options, checked (MonoMapError naming the option)."""
+    import math
+
     from mono_map.config import OctoMapConfig
-
-    return OctoMapConfig(resolution=args.res, prob_hit=args.prob_hit, prob_miss=args.prob_miss,
-                         clamp_min=args.clamp_min, clamp_max=args.clamp_max, max_range=args.max_range)
-
-
-def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model: str | None) -> str:
-    """A file stem that encodes every parameter changing the map (used as the cache key)."""
-    from mono_map.config import OctoMapConfig
-
-    parts = [source if source != "mono" else f"mono-keep{keep:g}"]
-    if source == "mono":
-        if model:
-            parts.append("model-" + Path(str(model)).stem)
-        if stride != 1:
-            parts.append(f"stride{stride}")
-    parts.append(f"res{cfg.resolution:g}")
-    d = OctoMapConfig()
-    if cfg.max_range != d.max_range:
-        parts.append(f"maxrange{cfg.max_range:g}")
-    for name in ("prob_hit", "prob_miss", "clamp_min", "clamp_max"):
-        if getattr(cfg, name) != getattr(d, name):
-            parts.append(f"{name.replace('_', '')}{getattr(cfg, name):g}")
-    parts.append(frames_desc)
-    return "_".join(parts)
-
-
-def _frames_tag(frames: range) -> str:
-    return f"f{frames.start}-{frames.stop}"
-
-
-def build_and_write(seq, source: str, keep: float, cfg, frames: range, stride: int, model: str | None,
-                    out_dir: Path, name: str | None = None, observers=(), show_progress: bool = True) -> tuple[Path, dict]:
-    """Build one map and write ``<name>.bt`` + ``<name>.json`` atomically; returns (bt path, stats)."""
-    from mono_map.io import write_json_atomic
-    from mono_map.mapping.build import build_map, load_predictor, write_tree_bt
-
-    predictor = load_predictor(model) if source == "mono" else None
-    name = name or map_stem(source, keep, cfg, _frames_tag(frames), stride, model)
-    result = build_map(seq, source=source, keep=keep, frames=frames, octomap=cfg, stride=stride,
-                       predictor=predictor, observers=observers, show_progress=show_progress)
-    stats = dict(result.stats)
-    stats["model"] = (model or "shipped binary checkpoint") if source == "mono" else None
-    bt = out_dir / f"{name}.bt"
-    write_tree_bt(result.tree, bt)
-    stats["bt"] = str(bt)
-    stats["bt_bytes"] = bt.stat().st_size
-    write_json_atomic(out_dir / f"{name}.json", {"stats": stats, "per_frame": result.per_frame})
-    return bt, stats
-
-
-def run_build(args) -> int:
-    from mono_map.data.kitti import open_sequence
     from mono_map.errors import MonoMapError
-    from mono_map.mapping.build import SOURCES as BUILD_SOURCES, parse_frames
     from mono_map.mapping.integrate import validate_octomap_config
+
+    if args.max_range is not None and not (math.isfinite(args.max_range) and args.max_range > 0):
+        raise MonoMapError(f"--max-range: must be a positive number of metres, got {args.max_range} "
+                           "(leave it out for unlimited rays)")
+    if math.isfinite(args.res) and args.res > MAX_RESOLUTION:
+        raise MonoMapError(f"--res: {args.res:g} m cells are coarser than this tool supports "
+                           f"(<= {MAX_RESOLUTION:g} m; a street is about 20 m wide)")
+    cfg = OctoMapConfig(resolution=args.res, prob_hit=args.prob_hit, prob_miss=args.prob_miss,
+                        clamp_min=args.clamp_min, clamp_max=args.clamp_max,
+                        max_range=-1.0 if args.max_range is None else float(args.max_range))
+    validate_octomap_config(cfg)
+    return cfg
+
+
+MAX_RESOLUTION = 10.0            # metres
+
+
+def check_name(name: str | None) -> str | None:
+    """``--name``: a plain file stem, so every output stays inside ``--out``."""
+    from mono_map.errors import MonoMapError
+
+    if name is None:
+        return None
+    if not name or name in (".", "..") or "/" in name or "\\" in name or name.startswith(".") or "\0" in name:
+        raise MonoMapError(f"--name: {name!r} must be a plain file name (no '/', not starting with '.'), "
+                           "so the outputs stay inside --out")
+    return name
+
+
+DEFAULT_FRAMES = 500  # build and eval: the first 500 frames unless --frames says otherwise
+def run_build(args) -> int:
+    from mono_map.data.prepare import check_data_root, prepare_sequence
+    from mono_map.errors import MonoMapError
+    from mono_map.frames import first_frames, parse_frames
+    from mono_map.io import check_output_file
+    from mono_map.mapping.build import SOURCES as BUILD_SOURCES, load_predictor
     from mono_map.mapping.select import check_keep
 
+    # every option first: nothing is opened, rendered or written before they all pass
     if args.source not in BUILD_SOURCES:
         raise MonoMapError(f"--source: unknown source {args.source!r} (choose from {', '.join(BUILD_SOURCES)})")
     if args.source == "mono":
         check_keep(args.keep)
-        if args.model not in (None, "oracle") and not Path(args.model).exists() and Path(args.model).suffix:
-            raise MonoMapError(f"{args.model}: checkpoint not found")
+        checkpoint_path(args.model)
     if args.stride < 1:
         raise MonoMapError(f"--stride: must be a positive integer, got {args.stride}")
     cfg = octomap_config(args)
-    validate_octomap_config(cfg)
+    selection = parse_frames(args.frames, default=first_frames(DEFAULT_FRAMES))
+    check_name(args.name)
+    rrd = check_output_file(args.rrd, "--rrd", ".rrd", min_free=RRD_MIN_FREE) if args.rrd else None
+    if args.reference_map is not None and not Path(args.reference_map).is_file():
+        raise MonoMapError(f"--reference-map: {args.reference_map}: no such file")
+    check_data_root(args.data_root)
     out_dir = prepare_output_dir(sequence_output_dir(args.out, args.seq))
-    seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))
-    frames, desc = parse_frames(args.frames, len(seq))
-    print(f"mono-map build: sequence {args.seq}, {desc}, source {args.source}"
-          + (f", keep {args.keep:g}" if args.source == "mono" else "") + f", {cfg.resolution:g} m cells")
+    predictor = load_predictor(args.model) if args.source == "mono" else None  # a bad checkpoint fails here
+    digest = model_digest(args.model) if args.source == "mono" else None
+    # then the data
+    seq = prepare_sequence(args.data_root, args.seq, selection)
+    frames = selection.resolve(len(seq))
+    check_memory(seq, frames, args.source, cfg, args.stride, args.keep)
+    print(f"mono-map build: sequence {args.seq}, {selection.describe(frames)}, source {args.source}"
+          + (f", keep {args.keep:g}" if args.source == "mono" else "") + f", {cfg.resolution:g} m cells", flush=True)
+    logger = None
     observers = []
-    if args.viewer or args.rrd:
+    if rrd is not None or args.viewer:
         from mono_map.viz.rerun_stream import RerunMapLogger
 
-        observers.append(RerunMapLogger(rrd=args.rrd, spawn=args.viewer, reference_map=args.reference_map,
-                                        resolution=cfg.resolution, image_size=seq.image_size))
+        def logger(path=None):
+            return RerunMapLogger(rrd=path, spawn=args.viewer, reference_map=args.reference_map,
+                                  resolution=cfg.resolution, image_size=seq.image_size)
+        if rrd is None:
+            observers.append(logger())
     bt, stats = build_and_write(seq, args.source, args.keep, cfg, frames, args.stride, args.model, out_dir,
-                                name=args.name, observers=observers)
-    print(f"wrote {bt} ({stats['bt_bytes'] / 2**20:.1f} MB on disk) and {bt.with_suffix('.json')}")
+                                name=args.name, observers=observers, predictor=predictor, rrd=rrd,
+                                logger=logger, digest=digest)
+    print(f"wrote {bt} ({stats['bt_bytes'] / 2**20:.1f} MB on disk) and {bt.with_suffix('.json')}"
+          + (f" and {rrd}" if rrd is not None else ""))
     print(f"  frames {stats['n_frames']}, points kept {stats['points_kept']:,}, rays cast {stats['rays_cast']:,}, "
           f"leaves {stats['leaf_count']:,}, memory {stats['memory_mb']:.1f} MB (OctoMap memoryUsage), "
           f"{stats['wall_s']:.1f} s = {stats['frames_per_s']:.2f} frames/s")
     return 0
 
 
-def _frames_needed(spec: str | None) -> int | None:
-    """How many frames a synthetic sequence must have for --frames (None = all / unknown)."""
-    from mono_map.mapping.build import DEFAULT_FRAMES
-
-    if spec is None:
-        return DEFAULT_FRAMES
-    s = str(spec).strip()
-    if s == "all":
-        return None
-    try:
-        return int(s.split(":", 1)[1]) if ":" in s and s.split(":", 1)[1].strip() else (None if ":" in s else int(s))
-    except ValueError:
-        return None
-
-
-def reference_path(args, seq, cfg, frames: range, out_dir: Path) -> Path:
-    """The reference .bt: a path, or the cached LiDAR(-FOV) map of the sequence (built if missing)."""
+def reference_path(ref: str, seq, cfg, frames, out_dir: Path) -> Path:
+    """The reference .bt: a path, or the LiDAR(-FOV) map of the sequence (built if missing or stale)."""
     from mono_map.errors import MonoMapError
-
-    ref = args.reference
+    from mono_map.frames import frames_tag
     if ref in ("lidar", "lidar-fov"):
-        stem = map_stem(ref, 1.0, cfg, _frames_tag(frames), 1, None)
+        stem = map_stem(ref, 1.0, cfg, frames_tag(frames), 1, None)
         bt = out_dir / f"{stem}.bt"
-        if not bt.exists():
-            print(f"building the {ref} reference map ({bt})")
+        ok, why = reusable(bt, job_key(seq, ref, 1.0, cfg, frames, 1, None))
+        if not ok:
+            print(f"building the {ref} reference map ({bt}: {why})", flush=True)
             build_and_write(seq, ref, 1.0, cfg, frames, 1, None, out_dir)
         return bt
     path = Path(ref)
-    if not path.exists():
+    if not path.is_file():
         raise MonoMapError(f"--reference: {ref} is neither lidar, lidar-fov nor an existing .bt file")
     return path
 
 
-def default_map_path(args) -> Path:
-    """The .bt ``mono-map build --seq SEQ --keep KEEP`` (same --frames/--stride/--model/--out/OctoMap
-    options) writes; MonoMapError if it is not there yet."""
-    from mono_map.data.kitti import open_sequence
+def check_eval_options(args):
+    """eval's options, checked before any data or map is read: (OctoMap config, frame selection)."""
     from mono_map.errors import MonoMapError
-    from mono_map.mapping.build import parse_frames
+    from mono_map.frames import first_frames, parse_frames
+    from mono_map.io import check_output_file
     from mono_map.mapping.select import check_keep
 
     check_keep(args.keep)
     cfg = octomap_config(args)
-    seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames), generate=False)
-    frames, _ = parse_frames(args.frames, len(seq))
+    selection = parse_frames(args.frames, default=first_frames(DEFAULT_FRAMES))
+    if args.stride < 1:
+        raise MonoMapError(f"--stride: must be a positive integer, got {args.stride}")
+    checkpoint_path(args.model)
+    if args.json:
+        check_output_file(args.json, "--json", ".json")
+    if args.map is not None and not Path(args.map).is_file():
+        raise MonoMapError(f"--map: {args.map}: map file not found")
+    if args.table:
+        parse_keeps(args.keeps)
+    if args.reference not in ("lidar", "lidar-fov") and not Path(args.reference).is_file():
+        raise MonoMapError(f"--reference: {args.reference} is neither lidar, lidar-fov nor an existing .bt file")
+    return cfg, selection
+
+
+def default_map_path(args, cfg, selection) -> Path:
+    """The .bt ``mono-map build --seq SEQ --keep KEEP`` (same --frames/--stride/--model/--out/OctoMap
+    options) writes; MonoMapError if it is not there yet or was built from other data or another model."""
+    from mono_map.data.prepare import prepare_sequence
+    from mono_map.errors import MonoMapError
+    from mono_map.frames import frames_tag
+
+    seq = prepare_sequence(args.data_root, args.seq, selection, render=False)
+    frames = selection.resolve(len(seq))
     out_dir = sequence_output_dir(args.out, args.seq)
-    path = out_dir / f"{map_stem('mono', args.keep, cfg, _frames_tag(frames), args.stride, args.model)}.bt"
+    path = out_dir / f"{map_stem('mono', args.keep, cfg, frames_tag(frames), args.stride, args.model)}.bt"
     if not path.is_file():
         raise MonoMapError(f"--map: none given, and {path} does not exist yet "
                            f"(build it: mono-map build --seq {args.seq} --keep {args.keep:g}, or pass --map)")
+    ok, why = reusable(path, job_key(seq, "mono", args.keep, cfg, frames, args.stride, args.model))
+    if not ok:
+        raise MonoMapError(f"--map: none given, and {path} is stale ({why}); rebuild it with mono-map build "
+                           f"--seq {args.seq} --keep {args.keep:g}, or pass --map")
     print(f"scoring {path}")
     return path
 
 
-def run_eval(args) -> int:
+def parse_keeps(text: str) -> tuple[float, ...]:
+    """``--keeps`` "0.3,0.5" → the sorted keeps, with 0.8 and 1.0 (the table's rows) always in."""
+    import math
+
     from mono_map.errors import MonoMapError
 
+    try:
+        keeps = {float(k) for k in text.split(",") if k.strip()}
+    except ValueError:
+        raise MonoMapError(f"--keeps: expected comma-separated numbers, got {text!r}") from None
+    for k in keeps:
+        if not (math.isfinite(k) and 0 < k <= 1):
+            raise MonoMapError(f"--keeps: {k} is outside (0, 1]")
+    return tuple(sorted(keeps | {0.8, 1.0}))
+
+
+def run_eval(args) -> int:
+    from mono_map.errors import MonoMapError
+    from mono_map.frames import FrameSelection
+
+    cfg, selection = check_eval_options(args)
     if args.table:
-        from mono_map.mapping.table import run_table
+        from mono_map.mapping.table import TableJob, run_table
 
-        return run_table(args)
-    if not args.map:
-        args.map = str(default_map_path(args))
-    import json
-
-    from mono_map.data.kitti import open_sequence
+        if args.reference not in ("lidar", "lidar-fov"):
+            raise MonoMapError(f"--reference: the table is scored against 'lidar-fov' or 'lidar', "
+                               f"not {args.reference!r}")
+        return run_table(TableJob(seq=args.seq, data_root=args.data_root, frames=selection, out=args.out,
+                                  keeps=parse_keeps(args.keeps), stride=args.stride, model=args.model,
+                                  octomap=cfg, reference=args.reference))
+    from mono_map.data.prepare import prepare_sequence
     from mono_map.eval.map_metrics import evaluate_map, load_tree
     from mono_map.io import write_json_atomic
-    from mono_map.mapping.build import parse_frames
 
-    map_path = Path(args.map)
+    map_path = Path(args.map) if args.map else default_map_path(args, cfg, selection)
+    side = read_map_sidecar(map_path)  # a corrupt sidecar is refused before any scoring
     tree = load_tree(map_path)
     if args.reference in ("lidar", "lidar-fov"):
-        cfg = octomap_config(args)
         # the reference is built with the map's resolution and frames (from the map's stats JSON if present)
-        side = map_path.with_suffix(".json")
-        meta = json.loads(side.read_text())["stats"] if side.exists() else {}
+        meta = side["stats"] if side else {}
         cfg = cfg.__class__(**{**cfg.__dict__, "resolution": float(tree.getResolution())})
-        seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))
-        if meta.get("frames") and args.frames is None:
-            frames = range(*meta["frames"])
-        else:
-            frames, _ = parse_frames(args.frames, len(seq))
-        out_dir = Path(args.out) if args.out else map_path.parent
-        ref_path = reference_path(args, seq, cfg, frames, out_dir)
+        out_dir = prepare_output_dir(Path(args.out) if args.out else map_path.parent)
+        try:
+            if args.frames is None and isinstance(meta.get("frame_indices"), list):
+                selection = FrameSelection(f"{map_path.name}'s frames", option=str(map_path.with_suffix(".json")),
+                                           indices=tuple(int(i) for i in meta["frame_indices"]))
+            elif args.frames is None and isinstance(meta.get("frames"), list) and len(meta["frames"]) == 2:
+                a, b = (int(x) for x in meta["frames"])
+                selection = FrameSelection(f"{map_path.name}'s frames {a}:{b}", option=str(map_path.with_suffix(".json")),
+                                           start=a, stop=b)
+        except (TypeError, ValueError):
+            raise MonoMapError(f"{map_path.with_suffix('.json')}: malformed 'frames' in the map's statistics") from None
+        seq = prepare_sequence(args.data_root, args.seq, selection)
+        frames = selection.resolve(len(seq))
+        ref_path = reference_path(args.reference, seq, cfg, frames, out_dir)
     else:
-        ref_path = reference_path(args, None, None, range(0), Path("."))
+        ref_path = reference_path(args.reference, None, None, [], Path("."))
     ref = load_tree(ref_path)
     metrics = evaluate_map(tree, ref)
     metrics["map_path"] = str(map_path)
     metrics["reference_path"] = str(ref_path)
-    side = map_path.with_suffix(".json")
-    if side.exists():
-        metrics["build"] = json.loads(side.read_text()).get("stats", {})
+    if side:
+        metrics["build"] = side["stats"]
     print(format_metrics(metrics))
     if args.json:
         write_json_atomic(args.json, metrics)

@@ -1,6 +1,7 @@
 """``mono-map eval --table``: the paper's Table IV for our data, plus a keep sweep.
 
-Builds (or reuses, cached under ``outputs/seq<SEQ>/`` by their parameters) the LiDAR-FOV map and
+Builds (or reuses, cached under ``outputs/seq<SEQ>/``; a map is reused only if its .json records the same job: data
+root, model digest, settings and frames) the LiDAR-FOV map and
 monocular maps for every keep of the sweep, scores each against the LiDAR-FOV map (``--reference
 lidar``: against the whole 360° LiDAR map, as the paper, where LiDAR-FOV is a scored row), and writes
 Markdown + JSON + a PNG of accuracy and memory against keep, and the top-down pictures.
@@ -8,67 +9,86 @@ Markdown + JSON + a PNG of accuracy and memory against keep, and the top-down pi
 
 from __future__ import annotations
 
-import json
+from dataclasses import dataclass
 from pathlib import Path
 
+from mono_map.config import OctoMapConfig
+from mono_map.frames import FrameSelection
 from mono_map.io import prepare_output_dir
 from mono_map.paths import sequence_output_dir
 
 
-def _cached(out_dir: Path, stem: str, build):
-    bt = out_dir / f"{stem}.bt"
-    js = out_dir / f"{stem}.json"
-    if bt.exists() and js.exists():
+@dataclass(frozen=True)
+class TableJob:
+    """What ``eval --table`` scores: sequence, data root, frames, maps' settings, reference."""
+
+    seq: str
+    data_root: str | None
+    frames: FrameSelection
+    out: str | None
+    keeps: tuple[float, ...]
+    stride: int
+    model: str | None
+    octomap: OctoMapConfig
+    reference: str = "lidar-fov"
+
+
+def _cached(bt: Path, job: dict, build):
+    """Reuse ``bt`` if its .json says it was built by exactly ``job`` (data root, model digest,
+    settings, frames); else build it again, saying why."""
+    from mono_map.mapping.jobs import read_map_sidecar, reusable
+
+    ok, why = reusable(bt, job)
+    if ok:
         print(f"  reusing {bt}")
-        return bt, json.loads(js.read_text())["stats"]
+        return bt, read_map_sidecar(bt)["stats"]
+    if bt.exists():
+        print(f"  rebuilding {bt} ({why})")
     return build()
 
 
-def run_table(args) -> int:
-    from mono_map.data.kitti import open_sequence
-    from mono_map.errors import MonoMapError
+def run_table(job: TableJob) -> int:
+    from mono_map.data.prepare import prepare_sequence
     from mono_map.eval.map_metrics import evaluate_map, load_tree
+    from mono_map.frames import frames_tag
     from mono_map.io import write_json_atomic, write_text_atomic
-    from mono_map.mapping.build import parse_frames
-    from mono_map.mapping.commands import (_frames_needed, _frames_tag, build_and_write, map_stem,
-                                           octomap_config)
-    from mono_map.mapping.integrate import validate_octomap_config
+    from mono_map.mapping.build import load_predictor
+    from mono_map.mapping.jobs import build_and_write, job_key, map_stem, model_digest
 
-    cfg = octomap_config(args)
-    validate_octomap_config(cfg)
-    reference = getattr(args, "reference", "lidar-fov")
-    if reference not in ("lidar", "lidar-fov"):
-        raise MonoMapError(f"--reference: the table is scored against 'lidar-fov' or 'lidar', not {reference!r}")
-    try:
-        keeps = sorted({float(k) for k in args.keeps.split(",") if k.strip()})
-    except ValueError:
-        raise MonoMapError(f"--keeps: expected comma-separated numbers, got {args.keeps!r}") from None
-    for k in keeps:
-        if not 0 < k <= 1:
-            raise MonoMapError(f"--keeps: {k} is outside (0, 1]")
-    keeps = sorted(set(keeps) | {0.8, 1.0})
-    out_dir = prepare_output_dir(sequence_output_dir(args.out, args.seq))
-    seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))
-    frames, desc = parse_frames(args.frames, len(seq))
-    print(f"mono-map eval --table: sequence {args.seq}, {desc}, {cfg.resolution:g} m cells, model "
-          f"{args.model or 'shipped binary checkpoint'}")
+    cfg = job.octomap
+    reference = job.reference
+    keeps = job.keeps
+    out_dir = prepare_output_dir(sequence_output_dir(job.out, job.seq))
+    digest = model_digest(job.model)
+    predictor = load_predictor(job.model)  # a bad checkpoint is refused before any data is read
+    seq = prepare_sequence(job.data_root, job.seq, job.frames)
+    frames = job.frames.resolve(len(seq))
+    desc = job.frames.describe(frames)
+    tag = frames_tag(frames)
+    print(f"mono-map eval --table: sequence {job.seq}, {desc}, {cfg.resolution:g} m cells, model "
+          f"{job.model or 'shipped binary checkpoint'}")
 
-    rows = []
-    fov_stem = map_stem("lidar-fov", 1.0, cfg, _frames_tag(frames), 1, None)
-    fov_bt, fov_stats = _cached(out_dir, fov_stem, lambda: build_and_write(
-        seq, "lidar-fov", 1.0, cfg, frames, 1, None, out_dir))
+    def build_mono(keep):
+        return build_and_write(seq, "mono", keep, cfg, frames, job.stride, job.model, out_dir,
+                               predictor=predictor, digest=digest)
+
+    def lidar_map(source):
+        bt = out_dir / f"{map_stem(source, 1.0, cfg, tag, 1, None)}.bt"
+        return _cached(bt, job_key(seq, source, 1.0, cfg, frames, 1, None), lambda: build_and_write(
+            seq, source, 1.0, cfg, frames, 1, None, out_dir))
+
+    fov_bt, fov_stats = lidar_map("lidar-fov")
     entries = [("LiDAR-FOV", "lidar-fov", None, fov_bt, fov_stats)]
     if reference == "lidar":  # the paper's ground truth: the whole LiDAR map; LiDAR-FOV is then a row to score
-        lidar_stem = map_stem("lidar", 1.0, cfg, _frames_tag(frames), 1, None)
-        ref_bt, _ = _cached(out_dir, lidar_stem, lambda: build_and_write(
-            seq, "lidar", 1.0, cfg, frames, 1, None, out_dir))
+        ref_bt, _ = lidar_map("lidar")
     else:
         ref_bt = fov_bt
     ref = load_tree(ref_bt)
+    rows = []
     for keep in sorted(keeps, reverse=True):
-        stem = map_stem("mono", keep, cfg, _frames_tag(frames), args.stride, args.model)
-        bt, stats = _cached(out_dir, stem, lambda keep=keep: build_and_write(
-            seq, "mono", keep, cfg, frames, args.stride, args.model, out_dir))
+        bt = out_dir / f"{map_stem('mono', keep, cfg, tag, job.stride, job.model)}.bt"
+        bt, stats = _cached(bt, job_key(seq, "mono", keep, cfg, frames, job.stride, job.model, digest),
+                            lambda keep=keep: build_mono(keep))
         label = "mono (keep 1.0)" if keep == 1.0 else f"mono keep {keep:g}"
         entries.append((label, "mono", keep, bt, stats))
     trees = {}
@@ -83,12 +103,13 @@ def run_table(args) -> int:
                      "leaf_count": stats["leaf_count"], "bt_bytes": stats.get("bt_bytes"),
                      "frames_per_s": stats["frames_per_s"], "points_kept": stats["points_kept"]})
 
-    md = table_markdown(rows, args.seq, desc, cfg, args.model, reference)
-    stem = (f"table_{_frames_tag(frames)}_res{cfg.resolution:g}" + (f"_model-{Path(args.model).stem}" if args.model else "")
+    md = table_markdown(rows, job.seq, desc, cfg, job.model, reference)
+    stem = (f"table_{tag}_res{cfg.resolution:g}" + (f"_model-{Path(job.model).stem}" if job.model else "")
             + ("_ref-lidar" if reference == "lidar" else ""))
     write_text_atomic(out_dir / f"{stem}.md", md)
-    write_json_atomic(out_dir / f"{stem}.json", {"sequence": args.seq, "frames": [frames.start, frames.stop], "reference": reference,
-                                                  "resolution": cfg.resolution, "model": args.model, "rows": rows})
+    write_json_atomic(out_dir / f"{stem}.json", {"sequence": job.seq, "frames": [frames[0], frames[-1] + 1],
+                                                  "reference": reference, "resolution": cfg.resolution,
+                                                  "model": job.model, "model_digest": digest, "rows": rows})
     from mono_map.viz.plots import plot_sweep, render_topdown
 
     plot_sweep(rows, out_dir / f"{stem}_sweep.png", "LiDAR-FOV" if reference == "lidar-fov" else "LiDAR")

@@ -32,14 +32,25 @@ def register(subparsers) -> None:
 
 
 def _check_rrd(path: Path) -> None:
+    """Refuse a file rerun cannot decode: the header (RrdReader), then every chunk (``rerun rrd verify``)."""
+    import warnings
+
     from rerun.chunk import RrdReader
 
     try:
-        recordings = RrdReader(path).recordings()
+        with warnings.catch_warnings():  # "no footer/manifest" warnings: verify below decides
+            warnings.simplefilter("ignore")
+            recordings = RrdReader(path).recordings()
     except Exception as exc:  # rerun raises RuntimeError/ValueError for non-RRD data
         raise MonoMapError(f"{path}: not a readable rerun recording ({exc})") from None
     if not recordings:
         raise MonoMapError(f"{path}: rerun file holds no recording")
+    proc = subprocess.run([rerun_binary(), "rrd", "verify", str(path)], stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, text=True, errors="replace", timeout=600)
+    if proc.returncode != 0:
+        lines = [ln.strip() for ln in proc.stdout.splitlines() if ln.strip()]
+        why = next((ln for ln in lines if "rror" in ln), lines[-1] if lines else f"exit {proc.returncode}")
+        raise MonoMapError(f"{path}: rerun cannot decode this recording (rerun rrd verify: {why[:200]})")
 
 
 def rerun_binary() -> str:

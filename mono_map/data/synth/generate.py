@@ -20,6 +20,7 @@ from mono_map.data.synth import writer
 from mono_map.data.synth.recipe import Recipe, load_recipe, recipe_path
 from mono_map.data.synth.trajectory import frame_pose_indices, frame_pose_lines, frame_poses
 from mono_map.errors import MonoMapError
+from mono_map.io import clean_stale_temps, pid_alive
 
 GENERATOR_VERSION = "3"
 FRAME_PERIOD = 0.1          # seconds between consecutive real poses (KITTI records at 10 Hz)
@@ -86,26 +87,37 @@ def marker_info(recipe: Recipe, n_frames: int) -> dict:
             "depth_2": "z-depth (m, cam2) of the first surface hit by each pixel's ray; glass = the glass pane"}
 
 
-def _pid_alive(pid: int) -> bool:
+def process_start(pid: int) -> str | None:
+    """An identity of process ``pid`` that survives PID reuse: its start time (Linux /proc), else None."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[19]  # field 22, after the command name
 
 
-def _check_not_busy(seq_dir: Path, partial: dict | None) -> None:
-    """Refuse to work on a sequence another live process is generating (its partial marker names it)."""
+def owner_alive(partial: dict) -> int | None:
+    """PID of the live process a partial marker names as its writer, else None (finished, killed, or
+    the PID now belongs to another process: the recorded start time differs)."""
     import socket
 
-    if not partial:
-        return
     pid = partial.get("pid")
-    if isinstance(pid, int) and pid != os.getpid() and partial.get("host") == socket.gethostname() and _pid_alive(pid):
-        raise MonoMapError(f"{seq_dir}: process {pid} is generating this sequence right now; "
-                           "wait for it to finish (or stop it) and try again")
+    if not isinstance(pid, int) or isinstance(pid, bool) or pid == os.getpid():
+        return None
+    if partial.get("host") != socket.gethostname() or not pid_alive(pid):
+        return None
+    started = partial.get("pid_start")
+    if started is not None and process_start(pid) not in (None, started):
+        return None  # PID reused by an unrelated process
+    return pid
+
+
+def _check_not_busy(seq_dir: Path, partial: dict | None, force: bool = False) -> None:
+    """Refuse to work on a sequence another live process is generating (its partial marker names it)."""
+    pid = owner_alive(partial) if partial else None
+    if pid is not None and not force:
+        raise MonoMapError(f"{seq_dir / writer.PARTIAL_MARKER}: process {pid} is generating this sequence right "
+                           "now; wait for it to finish, stop it, or pass --force if that process is not mono-map")
 
 
 def _is_current(info: dict | None, recipe: Recipe) -> bool:
@@ -121,10 +133,7 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
     extended); ``force`` re-renders everything.  Refuses to touch a directory that holds a
     sequence not written by this generator (no marker: e.g. a real KITTI sequence).
     """
-    import json
-
     from mono_map.data.synth.town import build_town
-    from mono_map.progress import progress
 
     root = Path(root)
     n = recipe.frames if frames is None else int(frames)
@@ -133,13 +142,18 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
     if workers < 1:
         raise MonoMapError(f"--workers: must be >= 1, got {workers}")
     seq_dir = root / "sequences" / recipe.name
-    marker = writer.read_marker(seq_dir)
     partial_path = seq_dir / writer.PARTIAL_MARKER
-    partial = json.loads(partial_path.read_text()) if partial_path.is_file() else None
-    if seq_dir.is_dir() and marker is None and partial is None and any(seq_dir.iterdir()):
+    partial = writer.read_marker(seq_dir, partial=True)
+    try:
+        marker = writer.read_marker(seq_dir)
+    except MonoMapError:
+        if not force:
+            raise
+        marker = None
+    if seq_dir.is_dir() and marker is None and partial is None and not force and any(seq_dir.iterdir()):
         raise MonoMapError(f"{seq_dir}: exists but was not written by mono-map synth (no {writer.MARKER}, "
                            "e.g. a real KITTI sequence); refusing to overwrite it")
-    _check_not_busy(seq_dir, partial)
+    _check_not_busy(seq_dir, partial, force)
     current = _is_current(marker, recipe)
     if not force and current and marker.get("n_frames", 0) >= n and partial is None:
         return seq_dir
@@ -149,8 +163,8 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
     seq_dir.mkdir(parents=True, exist_ok=True)
     import socket
 
-    writer.write_marker(seq_dir, {**marker_info(recipe, n), "pid": os.getpid(), "host": socket.gethostname()},
-                        partial=True)
+    writer.write_marker(seq_dir, {**marker_info(recipe, n), "pid": os.getpid(), "host": socket.gethostname(),
+                                  "pid_start": process_start(os.getpid())}, partial=True)
     todo = list(range(n)) if fresh else [i for i in range(n) if not writer.frame_complete(seq_dir, i)]
     t0 = time.perf_counter()
     if todo:
@@ -161,7 +175,11 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
                   f"{town.stats['black_cars']} black, {town.stats['trees']} trees) built in "
                   f"{time.perf_counter() - t0:.1f} s; rendering {len(todo)} frames with {workers} worker(s)",
                   file=sys.stderr)
-        _render_frames(recipe, town, seq_dir, todo, workers, quiet)
+        try:
+            _render_frames(recipe, town, seq_dir, todo, workers, quiet)
+        finally:  # interrupted or failed: the workers are gone, so are their half-written frame files
+            for sub in ("image_2", "depth_2", "velodyne"):
+                clean_stale_temps(seq_dir / sub)
     if fresh:
         writer.remove_frames_from(seq_dir, n)
     n_keep = max(n, marker.get("n_frames", 0) if (marker and current and not fresh) else n)
@@ -206,17 +224,12 @@ def ensure_sequence(root, name: str, frames: int | None = None) -> bool:
     if not path.is_file():
         return False
     seq_dir = root / "sequences" / str(name)
+    partial_info = writer.read_marker(seq_dir, partial=True)
+    partial = partial_info is not None
     marker = writer.read_marker(seq_dir)
-    partial = (seq_dir / writer.PARTIAL_MARKER).is_file()
     if seq_dir.is_dir() and marker is None and not partial and any(seq_dir.iterdir()):
         return False
-    if partial:
-        import json
-
-        try:
-            _check_not_busy(seq_dir, json.loads((seq_dir / writer.PARTIAL_MARKER).read_text()))
-        except json.JSONDecodeError:
-            pass
+    _check_not_busy(seq_dir, partial_info)
     recipe = load_recipe(path)
     want = recipe.frames if frames is None else min(int(frames), recipe.frames)
     if marker is not None and not partial and int(marker.get("n_frames", 0)) >= want:

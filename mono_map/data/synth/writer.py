@@ -29,14 +29,12 @@ def calib_text() -> str:
     return (KITTI_ASSETS_DIR / "calib_00.txt").read_text()
 
 
-def read_calib(text: str | None = None) -> dict[str, np.ndarray]:
-    """Parse KITTI odometry calib text: {'P0'..'P3': 3×4, 'Tr': 4×4 (velodyne → cam0)}."""
-    out = {}
-    for line in (text if text is not None else calib_text()).splitlines():
-        if ":" not in line:
-            continue
-        key, vals = line.split(":", 1)
-        out[key.strip()] = np.array([float(v) for v in vals.split()]).reshape(3, 4)
+def read_calib() -> dict[str, np.ndarray]:
+    """The calibration synthetic sequences are written with (real KITTI 00's), through the reader's
+    parser: {'P0'..'P3': 3×4, 'Tr': 4×4 (velodyne → cam0)}."""
+    from mono_map.data.kitti import read_calib_file
+
+    out = {key: value.reshape(3, 4) for key, value in read_calib_file(KITTI_ASSETS_DIR / "calib_00.txt").items()}
     Tr = np.eye(4)
     Tr[:3] = out["Tr"]
     out["Tr"] = Tr
@@ -88,14 +86,27 @@ def remove_frames_from(seq_dir: Path, n: int) -> None:
                 p.unlink()
 
 
-def read_marker(seq_dir: Path) -> dict | None:
-    p = seq_dir / MARKER
+def read_marker(seq_dir: Path, partial: bool = False) -> dict | None:
+    """The sequence's marker (``synth.json``, or with ``partial`` the in-progress one), None if absent.
+
+    A malformed ``synth.json`` raises MonoMapError naming it (``synth --force`` re-renders); a
+    malformed partial marker is what an interrupted write leaves, read as an interrupted
+    generation without an owner ({}).
+    """
+    p = seq_dir / (PARTIAL_MARKER if partial else MARKER)
     if not p.is_file():
         return None
     try:
-        return json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        return None
+        info = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError, OSError):
+        info = None
+    if partial:
+        return info if isinstance(info, dict) else {}
+    n = info.get("n_frames") if isinstance(info, dict) else None
+    if isinstance(n, int) and not isinstance(n, bool) and n >= 1:
+        return info
+    raise MonoMapError(f"{p}: malformed synthetic-sequence marker (no positive integer n_frames); "
+                       f"re-render with mono-map synth --seq {seq_dir.name} --force")
 
 
 def write_marker(seq_dir: Path, info: dict, partial: bool = False) -> None:

@@ -1,0 +1,280 @@
+"""A map job: everything that determines a map, its file name and key, and building + publishing it.
+
+``job_key`` lists what determines a map (data root, sequence and synthetic recipe hash, source,
+keep, stride, the checkpoint's sha256 digest, OctoMap settings, frames, integration); it is stored
+in the map's ``.json`` and :func:`reusable` compares it before a written map is reused (the file
+name, :func:`map_stem`, is for people). :func:`build_and_write` builds a map and publishes its
+``.bt``, ``.json`` (and ``.rrd``) together or not at all; :func:`check_memory` refuses, before
+building, settings whose first frame would not fit in memory.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+# rerun's file sink blocks for good on a full disk: a recording stops while this much is still free
+RRD_MIN_FREE = 32 << 20
+
+
+class DiskSpaceGuard:
+    """Observer that stops a build before the disk under ``path`` fills (MonoMapError naming it)."""
+
+    def __init__(self, path: Path, min_free: int = RRD_MIN_FREE):
+        self.path, self.min_free = Path(path), min_free
+
+    def __call__(self, update) -> None:
+        from mono_map.errors import MonoMapError
+        from mono_map.io import free_bytes
+
+        free = free_bytes(self.path.parent)
+        if free < self.min_free:
+            raise MonoMapError(f"{self.path}: the disk is nearly full ({free / 2**20:.1f} MB left) at frame "
+                               f"{update.index}; nothing was written")
+
+
+def checkpoint_path(model: str | None) -> Path | None:
+    """The checkpoint file ``--model`` names (None: the shipped binary model; a bare head name: its
+    shipped checkpoint; 'oracle': none); MonoMapError if it does not exist."""
+    from mono_map.depth.inference import default_checkpoint
+    from mono_map.errors import MonoMapError
+
+    if model == "oracle":
+        return None
+    if model is None:
+        path = default_checkpoint("binary")
+    elif not Path(model).suffix and not Path(model).exists():
+        path = default_checkpoint(str(model))
+    else:
+        path = Path(model)
+    if not path.is_file():
+        raise MonoMapError(f"--model: {model}: checkpoint not found")
+    return path
+
+
+def model_digest(model: str | None) -> str:
+    """What identifies the depth model: sha256 of its checkpoint file (first 16 hex), or 'oracle'."""
+    import hashlib
+
+    path = checkpoint_path(model)
+    if path is None:
+        return "oracle"
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
+def job_key(seq, source: str, keep: float, cfg, frames, stride: int, model: str | None,
+            digest: str | None = None) -> dict:
+    """Everything that determines a map: stored in its .json, compared before a map is reused."""
+    import dataclasses
+
+    from mono_map.frames import frames_tag
+
+    marker = {}
+    if seq is not None and (seq.path / "synth.json").is_file():
+        import json
+
+        try:
+            info = json.loads((seq.path / "synth.json").read_text())
+            marker = {k: info.get(k) for k in ("recipe_hash", "generator_version", "n_frames")}
+        except (ValueError, UnicodeDecodeError):
+            marker = {}
+    mono = source == "mono"
+    return {"data_root": str(Path(seq.root).resolve()) if seq is not None else None,
+            "sequence": getattr(seq, "name", None), "synthetic": marker or None,
+            "source": source, "keep": float(keep) if mono else None, "stride": int(stride) if mono else None,
+            "model": (digest or model_digest(model)) if mono else None,
+            "frames": frames_tag(frames), "octomap": dataclasses.asdict(cfg), "integration": "batched"}
+
+
+def read_map_sidecar(path: Path) -> dict | None:
+    """The ``.json`` a build wrote beside ``<name>.bt``: {"stats", "job", ...}; None if absent;
+    MonoMapError naming it if it is not one."""
+    import json
+
+    from mono_map.errors import MonoMapError
+
+    side = Path(path).with_suffix(".json")
+    if not side.is_file():
+        return None
+    try:
+        data = json.loads(side.read_text())
+    except (ValueError, UnicodeDecodeError, OSError) as exc:
+        raise MonoMapError(f"{side}: unreadable map statistics ({exc.__class__.__name__}); "
+                           "delete it or rebuild the map") from None
+    if not isinstance(data, dict) or not isinstance(data.get("stats"), dict):
+        raise MonoMapError(f"{side}: not a mono-map build's statistics (no 'stats' object); "
+                           "delete it or rebuild the map")
+    return data
+
+
+def reusable(bt: Path, job: dict) -> tuple[bool, str]:
+    """Whether ``bt`` (with its .json) was built by exactly ``job``; (False, why) otherwise."""
+    from mono_map.errors import MonoMapError
+
+    if not bt.is_file():
+        return False, "not built yet"
+    try:
+        side = read_map_sidecar(bt)
+    except MonoMapError as exc:
+        return False, str(exc)
+    if side is None:
+        return False, f"{bt.with_suffix('.json').name} missing"
+    if side.get("job") != job:
+        stored = side.get("job") or {}
+        diff = sorted(k for k in set(job) | set(stored) if job.get(k) != stored.get(k))
+        return False, f"built with other {', '.join(diff) or 'settings'}"
+    if side["stats"].get("bt_bytes") not in (None, bt.stat().st_size):
+        return False, f"{bt.name} does not match its .json"
+    return True, ""
+
+
+def memory_limit() -> tuple[float, str]:
+    """Bytes a build may use, and where the figure comes from: ``$MONO_MAP_MEMORY_GB``, else the
+    smaller of the available RAM (/proc/meminfo) and the address-space limit (ulimit -v)."""
+    import os
+    import resource
+
+    env = os.environ.get("MONO_MAP_MEMORY_GB")
+    if env:
+        try:
+            return float(env) * 2**30, "$MONO_MAP_MEMORY_GB"
+        except ValueError:
+            from mono_map.errors import MonoMapError
+
+            raise MonoMapError(f"$MONO_MAP_MEMORY_GB: expected a number of GB, got {env!r}") from None
+    limit, where = float("inf"), "no limit known"
+    try:
+        for line in open("/proc/meminfo"):
+            if line.startswith("MemAvailable:"):
+                limit, where = float(line.split()[1]) * 1024, "available RAM"
+    except OSError:
+        pass
+    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if soft != resource.RLIM_INFINITY and soft < limit:
+        limit, where = float(soft), "ulimit -v"
+    return limit, where
+
+
+# Peak memory of one frame's integration, measured on tiny frame 0 (peak RSS above the start-up):
+# LiDAR ≈ 90 B per ray-cell visit (0.05 m: 22 M visits, 1.9 GB); mono (shipped model, keep 0.8,
+# 1241×376) ≈ 150 MB at 0.2 m, growing as (0.2 / res)^2.5 (0.1 m: 0.58 GB, 0.05 m: 3.3 GB).
+BYTES_PER_VISIT = 90
+MONO_BYTES_AT_02 = 150e6
+
+
+def estimate_frame_bytes(seq, i: int, source: str, cfg, stride: int, keep: float) -> float:
+    """Peak bytes to integrate frame ``i`` alone (see the constants above; an estimate, not a bound)."""
+    import numpy as np
+
+    if source == "mono":
+        h, w = seq.image_size
+        pixels = (-(-h // stride)) * (-(-w // stride)) * keep
+        return MONO_BYTES_AT_02 * (0.2 / cfg.resolution) ** 2.5 * pixels / (376 * 1241 * 0.8)
+    from mono_map.mapping.reference import lidar_measurement
+
+    pts, origin = lidar_measurement(seq, i, source)
+    lengths = np.linalg.norm(pts - origin, axis=1)
+    if cfg.max_range > 0:
+        lengths = np.minimum(lengths, cfg.max_range)
+    return float(np.sum(lengths / cfg.resolution + 1)) * BYTES_PER_VISIT
+
+
+def check_memory(seq, frames, source: str, cfg, stride: int, keep: float) -> None:
+    """Refuse, before building, settings whose first frame alone would not fit in memory."""
+    from mono_map.errors import MonoMapError
+
+    need = estimate_frame_bytes(seq, frames[0], source, cfg, stride, keep)
+    limit, where = memory_limit()
+    if need > limit:
+        raise MonoMapError(f"--res: {cfg.resolution:g} m cells: integrating frame {frames[0]} alone would need about "
+                           f"{need / 2**30:.1f} GB, more than the {limit / 2**30:.1f} GB allowed ({where}); "
+                           "use a coarser --res, a --max-range or a larger --stride")
+
+
+def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model: str | None) -> str:
+    """A file stem that encodes every parameter changing the map (the .json's job key decides reuse)."""
+    from mono_map.config import OctoMapConfig
+
+    parts = [source if source != "mono" else f"mono-keep{keep:g}"]
+    if source == "mono":
+        if model:
+            parts.append("model-" + Path(str(model)).stem)
+        if stride != 1:
+            parts.append(f"stride{stride}")
+    parts.append(f"res{cfg.resolution:g}")
+    d = OctoMapConfig()
+    if cfg.max_range != d.max_range:
+        parts.append(f"maxrange{cfg.max_range:g}")
+    for name in ("prob_hit", "prob_miss", "clamp_min", "clamp_max"):
+        if getattr(cfg, name) != getattr(d, name):
+            parts.append(f"{name.replace('_', '')}{getattr(cfg, name):g}")
+    parts.append(frames_desc)
+    return "_".join(parts)
+
+
+def build_and_write(seq, source: str, keep: float, cfg, frames, stride: int, model: str | None,
+                    out_dir: Path, name: str | None = None, observers=(), show_progress: bool = True,
+                    predictor=None, rrd: Path | None = None, logger=None, digest: str | None = None
+                    ) -> tuple[Path, dict]:
+    """Build one map and publish ``<name>.bt``, ``<name>.json`` (and ``rrd``) together; (bt path, stats).
+
+    ``logger(rrd_path)`` makes the recording observer, given the temporary path the recording is
+    written to (renamed with the map only if the whole build succeeds). Nothing is published
+    if the build fails.
+    """
+    from mono_map.errors import MonoMapError
+    from mono_map.frames import frames_tag
+    from mono_map.io import atomic_outputs, quiet_native_output, write_json_atomic
+    from mono_map.mapping.build import build_map, load_predictor, write_tree_bt
+
+    frames = list(frames)
+    job = job_key(seq, source, keep, cfg, frames, stride, model, digest)
+    if source == "mono" and predictor is None:
+        predictor = load_predictor(model)
+    name = name or map_stem(source, keep, cfg, frames_tag(frames), stride, model)
+    bt = out_dir / f"{name}.bt"
+    targets = [bt] + ([Path(rrd)] if rrd is not None else []) + [bt.with_suffix(".json")]
+    with atomic_outputs(*targets) as temps:
+        observers = list(observers)
+        if rrd is not None:
+            observers = [DiskSpaceGuard(Path(rrd))] + observers + [logger(temps[1])]
+        try:
+            result = build_map(seq, source=source, keep=keep, frames=frames, octomap=cfg, stride=stride,
+                               predictor=predictor, observers=observers, show_progress=show_progress)
+        except RuntimeError as exc:  # rerun's flush timing out: its sink could not write the recording
+            if rrd is None:
+                raise
+            raise MonoMapError(f"{rrd}: rerun could not write the recording ({exc})") from None
+        stats = dict(result.stats)
+        stats["model"] = (model or "shipped binary checkpoint") if source == "mono" else None
+        if frames != list(range(frames[0], frames[-1] + 1)):
+            stats["frame_indices"] = frames
+        with _naming(bt), quiet_native_output():  # OctoMap's own warning on a full disk: reported below
+            write_tree_bt(result.tree, temps[0])
+        stats["bt"] = str(bt)
+        stats["bt_bytes"] = temps[0].stat().st_size
+        with _naming(bt.with_suffix(".json")):
+            write_json_atomic(temps[-1], {"stats": stats, "job": job, "per_frame": result.per_frame})
+    return bt, stats
+
+
+def _naming(target: Path):
+    """Errors while writing a temporary file are reported under the output's own name."""
+    import contextlib
+
+    from mono_map.errors import MonoMapError
+    from mono_map.io import free_bytes
+
+    @contextlib.contextmanager
+    def ctx():
+        try:
+            yield
+        except (OSError, MonoMapError) as exc:
+            why = getattr(exc, "strerror", None) or "write failed"
+            if free_bytes(target.parent) < (1 << 20):
+                why = "No space left on device" if why == "write failed" else why
+            raise MonoMapError(f"{target}: could not write it ({why}); nothing was published") from None
+    return ctx()
