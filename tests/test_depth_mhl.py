@@ -72,3 +72,21 @@ def test_a_32_bin_model_saves_loads_and_predicts_through_the_same_code(tmp_path)
     assert model.cfg.num_bins == 32 and payload["bins"]["num_bins"] == 32
     p = DepthPredictor.load(tmp_path / "k32.pt").predict(np.zeros((60, 120, 3), np.uint8), with_probs=True)
     assert p.probs.shape == (32, 60, 120) and p.depth.shape == (60, 120) and p.p_beyond.shape == (60, 120)
+
+
+def test_bf16_inference_agrees_with_fp32(tmp_path):
+    torch.manual_seed(0)
+    cfg = named_config("small", head="binary", num_bins=16, beyond=True, **TINY)
+    net = DepthNet(cfg).eval()
+    img = (np.random.default_rng(0).random((60, 120, 3)) * 255).astype(np.uint8)
+    a = DepthPredictor(net).predict(img)
+    net2 = DepthNet(cfg).eval()
+    net2.load_state_dict(net.state_dict())
+    b = DepthPredictor(net2, precision="bf16").predict(img)
+    assert np.abs(np.log(a.depth / b.depth)).max() < 0.05 and np.abs(a.entropy - b.entropy).max() < 0.05
+    import pytest
+
+    from mono_map.errors import MonoMapError
+
+    with pytest.raises(MonoMapError, match="precision"):
+        DepthPredictor(net, precision="fp16")

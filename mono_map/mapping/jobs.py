@@ -82,11 +82,17 @@ def job_key(seq, source: str, keep: float, cfg, frames, stride: int, model: str 
         except (ValueError, UnicodeDecodeError):
             marker = {}
     mono = source == "mono"
+    precision = None
+    if mono and model != "oracle":
+        from mono_map.depth.inference import default_precision
+
+        precision = default_precision()
     return {"data_root": str(Path(seq.root).resolve()) if seq is not None else None,
             "sequence": getattr(seq, "name", None), "synthetic": marker or None,
             "source": source, "keep": float(keep) if mono else None, "stride": int(stride) if mono else None,
             "model": (digest or model_digest(model)) if mono else None,
-            "frames": frames_tag(frames), "octomap": dataclasses.asdict(cfg), "integration": "batched"}
+            "frames": frames_tag(frames), "octomap": dataclasses.asdict(cfg), "integration": "batched",
+            "precision": precision}
 
 
 def read_map_sidecar(path: Path) -> dict | None:
