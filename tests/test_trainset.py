@@ -133,3 +133,14 @@ def test_training_validates_logs_the_curve_and_keeps_the_best(tiny_cache, tmp_pa
     assert all(0 < r["abs_rel"] < 10 and 0 <= r["sky_beyond_acc"] <= 1 and r["cpu_hours"] > 0 for r in rows), rows
     _, payload = load_checkpoint(tmp_path / "w" / "val" / "best.pt")
     assert payload["training"]["validation"]["abs_rel"] == min(r["abs_rel"] for r in rows)
+
+
+def test_sampler_picks_up_towns_rendered_after_it_started(tiny_cache, tmp_path):
+    import shutil
+
+    root = tmp_path / "cache"
+    shutil.copytree(tiny_cache, root)
+    s = TrainsetSampler(DataConfig(trainset=str(root), target="dense", validation_town=""))
+    n = len(s)
+    shutil.copytree(root / "towns" / SPEC.name, root / "towns" / "t04_copy")   # a town that appears later
+    assert s.refresh() == 2 * n and len(s.towns) == 2

@@ -6,7 +6,8 @@ from pathlib import Path
 
 from mono_map.frames import FrameSelection, parse_frames
 
-SHIPPED_HEADS = ("binary", "softmax", "gaussian", "ordinal")
+# shipped checkpoints (mono_map/checkpoints/NAME.pt): the model-v2 mapping model and the v1 heads
+SHIPPED_HEADS = ("binary", "v1/binary", "v1/softmax", "v1/gaussian", "v1/ordinal")
 
 
 def register(subparsers) -> None:
@@ -28,7 +29,7 @@ def register(subparsers) -> None:
     p.add_argument("--data-root", default=None)
     p.add_argument("--frames", default=None,
                    help="with --seq: N (the first N), A:B[:S], I,J,... or 'all' (default all)")
-    p.add_argument("--model", default=None, help="checkpoint path or shipped head name (default: binary)")
+    p.add_argument("--model", default=None, help="checkpoint path or shipped name: binary (model v2, default) or v1/binary, v1/softmax, v1/gaussian, v1/ordinal")
     p.add_argument("--out", default="outputs/predict", help="output folder")
     p.add_argument("--npz", action="store_true", help="also save the K×h×w distributions (float16, model resolution)")
     p.add_argument("--space", choices=("log", "linear"), default="log", help="expectation space")
@@ -40,7 +41,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", default=None,
                    help="N (the first N), A:B[:S], I,J,... or 'all' (default 0:500:10, fewer in a shorter sequence)")
     p.add_argument("--model", action="append", default=None,
-                   help="checkpoint path or shipped head name; repeat for several (default: all shipped)")
+                   help="checkpoint path or shipped name (binary, v1/binary, v1/softmax, v1/gaussian, v1/ordinal); repeat for several (default: all shipped)")
     p.add_argument("--gt", choices=("lidar", "dense"), default="lidar", help="ground truth: projected LiDAR or dense depth_2")
     p.add_argument("--kitti-object", default=None, help="evaluate on a real KITTI object 'training' folder instead")
     p.add_argument("--trainset-town", default=None,
@@ -192,7 +193,7 @@ def run_eval_depth(args) -> int:
     predictors = {}
     for m in _models(args):
         p = DepthPredictor.load(m, fast=args.fast)
-        key = p.head if p.head not in predictors else f"{p.head} ({m})"
+        key = m if m in SHIPPED_HEADS else (p.head if p.head not in predictors else f"{p.head} ({m})")
         predictors[key] = p
     if args.kitti_object:
         frames = object_frames(args.kitti_object)

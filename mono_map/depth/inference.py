@@ -46,6 +46,7 @@ def default_precision() -> str:
 
 
 def default_checkpoint(head: str = "binary") -> Path:
+    """A shipped checkpoint by name: "binary" (model v2, the mapping model) or "v1/<head>" (v1 heads)."""
     return CHECKPOINT_DIR / f"{head}.pt"
 
 

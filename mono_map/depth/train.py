@@ -200,20 +200,23 @@ class TrainsetSampler:
     """
 
     def __init__(self, data: DataConfig):
-        from mono_map.data.synth.trainset import open_trainset
-
-        names = list(data.towns) or None
-        towns = [t for t in open_trainset(trainset_root(data), names)
-                 if t.path.name != data.validation_town]
-        if not towns:
+        self.data = data
+        self.towns: list = []
+        self.refresh()
+        if not self.towns:
             raise MonoMapError(f"{data.trainset}: no training towns in the cache (render them with "
                                "tools/render_trainset.py)")
-        self.towns, self.data = towns, data
-        self.refresh()
 
     def refresh(self) -> int:
+        """Re-scan the cache: towns created and frames finished since the last call join the pool."""
+        from mono_map.data.synth.trainset import open_trainset
+
+        names = list(self.data.towns) or None
+        known = {t.path.name: t for t in self.towns}
+        self.towns = [known.get(t.path.name, t) for t in open_trainset(trainset_root(self.data), names)
+                      if t.path.name != self.data.validation_town]
         self.index = [(t, f) for t in self.towns for f in t.done_frames()]
-        if not self.index:
+        if self.towns and not self.index:
             raise MonoMapError(f"{self.data.trainset}: no rendered frames yet")
         return len(self.index)
 
