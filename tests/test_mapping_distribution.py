@@ -1,0 +1,183 @@
+"""Distribution-aware integration (``--integrate distribution``): the expected OctoMap update per cell."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mono_map.config import OctoMapConfig
+from mono_map.errors import MonoMapError
+from mono_map.eval.map_metrics import tree_leaves
+from mono_map.mapping.distribution import (check_distribution, distribution_update, expected_updates, far_depth)
+from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.points import camera_origin, pixels_to_world
+from mono_map.mapping.raycast import coord_to_key, key_to_coord
+
+K = np.array([[120.0, 0.0, 64.0], [0.0, 120.0, 24.0], [0.0, 0.0, 1.0]])
+HIT, MISS = np.float32(np.log(0.7 / 0.3)), np.float32(np.log(0.4 / 0.6))
+
+
+def pose(i: int) -> np.ndarray:
+    a = 0.15 * i
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    T[:3, 3] = [0.9 * i + 0.013, 0.31, 0.47 * i - 0.021]
+    return T
+
+
+def depth_frame(i: int, h: int = 48, w: int = 128) -> np.ndarray:
+    """A street-like depth image: a wall at 12-30 m, a box in front, the ground below the horizon."""
+    rng = np.random.default_rng(i)
+    v, u = np.mgrid[0:h, 0:w]
+    d = 12.0 + 18.0 * (u / w) + rng.normal(0, 0.05, (h, w))
+    d[(u > 40) & (u < 70) & (v > 10) & (v < 30)] = 5.0 + 0.5 * i
+    ground = v > 30
+    d[ground] = np.minimum(d[ground], 1.65 * 120.0 / (v[ground] - 24.0 + 1e-9))
+    return np.clip(d, 1.0, 80.0).astype(np.float32)
+
+
+def tree_cells(tree) -> dict:
+    leaves = tree_leaves(tree)
+    codes, leaf = leaves.expand()
+    return dict(zip(codes.tolist(), leaves.value[leaf].astype(np.float32).tolist()))
+
+
+def integrate_point_masses(integ: MapIntegrator, depth: np.ndarray, T: np.ndarray, cfg: OctoMapConfig):
+    mask = np.ones(depth.shape, bool)
+    v, u = np.nonzero(mask)
+    d = depth[v, u].astype(np.float64)
+    probs = np.ones((len(d), 1), np.float32)
+    edges = np.stack([d, d], axis=1)                    # one zero-width bin: a point mass at the depth
+    fd = far_depth(probs, np.zeros(len(d)), edges, 1e-3)
+    assert np.array_equal(fd, d)
+    upd = distribution_update(camera_origin(T), pixels_to_world(depth, mask, K, T), fd, probs, None, edges,
+                              cfg.resolution, integ.hit, integ.miss, cfg.max_range)
+    return integ.insert_updates(upd)
+
+
+@pytest.mark.parametrize("max_range", [-1.0, 15.0])
+def test_point_masses_reproduce_keep_1_bit_for_bit(max_range):
+    cfg = OctoMapConfig(resolution=0.2, max_range=max_range)
+    keep, dist = MapIntegrator(cfg), MapIntegrator(cfg)
+    for i in range(4):
+        depth, T = depth_frame(i), pose(i)
+        a = keep.insert(pixels_to_world(depth, np.ones(depth.shape, bool), K, T), camera_origin(T))
+        b = integrate_point_masses(dist, depth, T, cfg)
+        assert len(a.keys.free) == len(b.keys.free) and len(a.keys.occupied) == len(b.keys.occupied)
+    ca, cb = tree_cells(keep.tree), tree_cells(dist.tree)
+    assert len(ca) > 10_000
+    assert ca == cb                                       # same cells, same float32 log-odds
+    assert keep.tree.memoryUsage() == dist.tree.memoryUsage()
+    assert keep.tree.getNumLeafNodes() == dist.tree.getNumLeafNodes()
+
+
+ORIGIN = np.array([0.1, 0.1, 0.05])   # on a cell centre in x and y: rays along +z stay on one cell column
+
+
+def one_ray(probs, edges, p_beyond=None, res=0.2, eps=1e-3):
+    """Cell updates of one ray along +z: (depth of the cell centres, dl, far depth, depth per metre of ray)."""
+    probs = np.asarray(probs, np.float32)[None, :]
+    edges = np.asarray(edges, np.float64)
+    pb = np.zeros(1) if p_beyond is None else np.array([p_beyond])
+    fd = far_depth(probs, pb, edges, eps)
+    far = ORIGIN + np.array([0.0, 0.0, fd[0]])
+    upd = distribution_update(ORIGIN, far[None, :], fd, probs, pb, edges, res, HIT, MISS)
+    assert (upd.keys[:, :2] == upd.keys[0, :2]).all()
+    centre_z = key_to_coord(upd.keys, res)[:, 2]
+    length = key_to_coord(coord_to_key(far[None, :], res), res)[0, 2] - ORIGIN[2]
+    scale = fd[0] / length
+    order = np.argsort(centre_z)
+    return (centre_z[order] - ORIGIN[2]) * scale, upd.dl[order], fd[0], scale
+
+
+def test_kernel_matches_reference_formula():
+    edges = np.geomspace(1.0, 80.0, 17)
+    rng = np.random.default_rng(3)
+    p = rng.dirichlet(np.ones(16)).astype(np.float32) * 0.9
+    z, dl, fd, scale = one_ray(p, edges, p_beyond=0.1)
+    assert len(z) > 100
+    t_out = np.arange(1, len(z) + 1) * 0.2 - ORIGIN[2]            # cell faces along the ray (metres)
+    t_in = np.r_[0.0, t_out[:-1]]
+    ref = expected_updates(p[None], np.array([0.1]), edges, t_in[None] * scale, t_out[None] * scale, HIT, MISS)[0]
+    np.testing.assert_allclose(dl[:-1], ref[:-1], atol=1e-6)      # the end cell reaches past its centre
+
+
+def test_uniform_distribution_gives_no_occupancy_and_weak_updates():
+    edges = np.geomspace(1.0, 80.0, 65)
+    z, dl, _, _ = one_ray(np.full(64, 1 / 64), edges)
+    assert dl.max() < 0.01 * HIT                            # at most 1 % of a hit anywhere
+    far = z > 10.0
+    assert np.abs(dl[far]).max() < 0.5 * abs(MISS)          # beyond 10 m: under half a LiDAR miss
+    point = one_ray([1.0], [20.0, 20.0])[1]
+    assert point.max() == HIT                               # a point mass gives the full hit
+
+
+def test_two_modes_give_occupancy_at_both_and_free_space_before():
+    # two point masses: half at 10 m, half at 20 m (bins [10,10], [10,20] empty, [20,20])
+    z, dl, fd, _ = one_ray([0.5, 0.0, 0.5], [10.0, 10.0, 20.0, 20.0])
+    assert fd == 20.0
+    at10 = np.abs(z - 10.0) < 0.1
+    at20 = np.abs(z - 20.0) < 0.1
+    assert dl[at10].max() > 0 and dl[at20].max() > 0
+    assert np.isclose(dl[at10].max(), 0.5 * HIT + 0.5 * MISS, atol=1e-6)
+    assert np.isclose(dl[at20].max(), 0.5 * HIT, atol=1e-6)
+    assert (dl[z < 9.8] == MISS).all()                      # free space before the first mode
+    between = (z > 10.2) & (z < 19.8)
+    assert np.allclose(dl[between], 0.5 * MISS, atol=1e-6)  # half free between the modes
+    assert z.max() < 20.2                                   # nothing after the last mode
+
+
+def test_more_mass_in_a_cell_never_lowers_its_update():
+    edges = np.geomspace(1.0, 80.0, 33)
+    rng = np.random.default_rng(0)
+    p = rng.dirichlet(np.ones(32), size=200)
+    z_in, z_out = np.array([[7.0, 20.0]]), np.array([[7.5, 21.0]])
+    base = expected_updates(p, None, edges, z_in, z_out, HIT, MISS)
+    j = np.searchsorted(edges, 7.2) - 1                      # the bin holding the first cell
+    for src in range(32):
+        if src == j:
+            continue
+        q = p.copy()
+        moved = 0.5 * q[:, src]
+        q[:, src] -= moved
+        q[:, j] += moved                                     # mass moved into the cell's bin
+        more = expected_updates(q, None, edges, z_in, z_out, HIT, MISS)
+        assert (more[:, 0] >= base[:, 0] - 1e-12).all()
+
+
+def test_eps_truncation_bounds_the_ray():
+    edges = np.geomspace(1.0, 80.0, 65)
+    centre = np.log(10.0)
+    lc = 0.5 * (np.log(edges[1:]) + np.log(edges[:-1]))
+    p = np.exp(-0.5 * ((lc - centre) / 0.1) ** 2)
+    p /= p.sum()
+    for eps in (1e-2, 1e-4):
+        z, dl, fd, _ = one_ray(p, edges, eps=eps)
+        beyond = 1.0 - np.cumsum(p)
+        first = np.argmax(beyond < eps)
+        assert edges[first] <= fd <= edges[first + 1]
+        assert z.max() <= fd + 0.2 * np.sqrt(3)              # no cell past the far depth's cell
+    assert one_ray(p, edges, eps=1e-4)[2] > one_ray(p, edges, eps=1e-2)[2]
+    # mass beyond range (p_beyond >= eps): the ray runs to the last edge
+    _, _, fd, _ = one_ray(p * 0.5, edges, p_beyond=0.5)
+    assert fd == 80.0
+
+
+@pytest.mark.parametrize("probs, pb, match", [
+    ([[np.nan, 1.0]], None, "NaN"),
+    ([[-0.1, 1.0]], None, "negative"),
+    ([[0.7, 0.6]], None, "summing above 1"),
+    ([[0.5, 0.5]], [0.2], "summing above 1"),
+    ([[0.5, 0.5]], [-0.2], "negative"),
+])
+def test_bad_distributions_are_one_clear_error(probs, pb, match):
+    with pytest.raises(MonoMapError, match=match):
+        check_distribution(np.array(probs), None if pb is None else np.array(pb), np.array([1.0, 2.0, 3.0]))
+    with pytest.raises(MonoMapError, match=match):
+        distribution_update(np.zeros(3), np.ones((1, 3)), np.ones(1), np.array(probs),
+                            None if pb is None else np.array(pb), np.array([1.0, 2.0, 3.0]), 0.2, HIT, MISS)
+
+
+def test_bad_edges_are_one_clear_error():
+    with pytest.raises(MonoMapError, match="non-decreasing"):
+        check_distribution(np.array([[0.5, 0.5]]), None, np.array([1.0, 3.0, 2.0]))
