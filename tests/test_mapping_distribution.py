@@ -181,3 +181,15 @@ def test_bad_distributions_are_one_clear_error(probs, pb, match):
 def test_bad_edges_are_one_clear_error():
     with pytest.raises(MonoMapError, match="non-decreasing"):
         check_distribution(np.array([[0.5, 0.5]]), None, np.array([1.0, 3.0, 2.0]))
+
+
+def test_far_depth_kernel_matches_numpy(monkeypatch):
+    edges = np.geomspace(1.0, 80.0, 33)
+    rng = np.random.default_rng(5)
+    p = (rng.dirichlet(np.ones(32) * 0.3, size=500) * rng.uniform(0.5, 1.0, (500, 1))).astype(np.float32)
+    pb = 1.0 - p.sum(axis=1, dtype=np.float64)
+    pb[::3] = 0.0
+    fast = far_depth(p, pb, edges, 0.05)
+    monkeypatch.setenv("MONO_MAP_NO_C", "1")
+    np.testing.assert_allclose(far_depth(p, pb, edges, 0.05), fast, rtol=1e-9)
+    assert (fast[pb >= 0.05] == 80.0).all()

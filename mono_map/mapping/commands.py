@@ -8,7 +8,7 @@ from pathlib import Path
 from mono_map.io import prepare_output_dir
 from mono_map.paths import sequence_output_dir
 
-SOURCES = ("mono", "lidar", "lidar-fov")
+SOURCES = ("mono", "depth-gt", "lidar", "lidar-fov")
 
 
 def _add_octomap_args(p: argparse.ArgumentParser) -> None:
@@ -25,6 +25,32 @@ def _add_octomap_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--clamp-max", type=float, default=d.clamp_max, help=f"default {d.clamp_max}")
 
 
+def _add_integration_args(p: argparse.ArgumentParser) -> None:
+    from mono_map.mapping.distribution import DistributionConfig
+
+    d = DistributionConfig()
+    g = p.add_argument_group("integration of monocular depth")
+    g.add_argument("--integrate", default="keep", choices=("keep", "distribution"),
+                   help="keep: the paper's cut, the --keep lowest-entropy pixels' expected depths as end points "
+                        "(default); distribution: every valid pixel's whole depth distribution sets the expected "
+                        "OctoMap update of each cell along its ray (--keep ignored)")
+    g.add_argument("--eps", type=float, default=d.eps,
+                   help=f"distribution: rays stop where P(surface beyond) < eps (default {d.eps:g})")
+    g.add_argument("--temperature", type=float, default=d.temperature,
+                   help=f"distribution: probabilities p^(1/T), renormalised (default {d.temperature:g} = as predicted)")
+    g.add_argument("--min-update", type=float, default=d.min_update,
+                   help=f"distribution: drop per-cell updates weaker than this log-odds magnitude (default {d.min_update:g})")
+    g.add_argument("--ray-step", type=int, default=d.ray_step,
+                   help=f"distribution: one ray every N-th pixel row and column (default {d.ray_step})")
+
+
+def distribution_config(args):
+    from mono_map.mapping.distribution import DistributionConfig, check_distribution_config
+
+    return check_distribution_config(DistributionConfig(eps=args.eps, temperature=args.temperature,
+                                                        ray_step=args.ray_step, min_update=args.min_update))
+
+
 def register(subparsers) -> None:
     b = subparsers.add_parser(
         "build", help="build an OctoMap (.bt + stats JSON) from monocular depth or LiDAR",
@@ -33,7 +59,9 @@ def register(subparsers) -> None:
                     "(or use the LiDAR scans). Writes <out>/<name>.bt and <out>/<name>.json atomically.")
     b.add_argument("--seq", required=True, help="sequence name, e.g. 00")
     b.add_argument("--keep", type=float, default=0.8, help="fraction of valid pixels kept per frame, in (0, 1] (default 0.8)")
-    b.add_argument("--source", default="mono", help="mono | lidar | lidar-fov (default mono)")
+    b.add_argument("--source", default="mono", help="mono | depth-gt | lidar | lidar-fov (default mono); depth-gt: "
+                   "the synthetic ground-truth depth_2 back-projected like a keep-1.0 mono map (upper bound)")
+    _add_integration_args(b)
     _add_octomap_args(b)
     b.add_argument("--stride", type=int, default=1, help="use every S-th pixel row and column (default 1)")
     b.add_argument("--frames", default=None,
@@ -47,6 +75,7 @@ def register(subparsers) -> None:
     b.add_argument("--viewer", action="store_true", help="stream the build to a spawned rerun viewer")
     b.add_argument("--rrd", default=None, help="save a rerun recording to this file")
     b.add_argument("--reference-map", default=None, help="a .bt shown beside the build in the viewer")
+    b.add_argument("--ot", action="store_true", help="also write the probabilistic tree <name>.ot (for calibration)")
     b.set_defaults(func=run_build)
 
     e = subparsers.add_parser(
@@ -68,6 +97,7 @@ def register(subparsers) -> None:
     e.add_argument("--data-root", default=None)
     e.add_argument("--out", default=None, help="directory for cached maps and the table (default outputs/seq<SEQ>)")
     e.add_argument("--json", default=None, help="write the metrics JSON here")
+    _add_integration_args(e)
     _add_octomap_args(e)
     e.set_defaults(func=run_eval)
 
@@ -79,16 +109,24 @@ def octomap_config(args):
                          clamp_min=args.clamp_min, clamp_max=args.clamp_max, max_range=args.max_range)
 
 
-def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model: str | None) -> str:
+def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model: str | None,
+             integrate: str = "keep", dcfg=None) -> str:
     """A file stem that encodes every parameter changing the map (used as the cache key)."""
     from mono_map.config import OctoMapConfig
+    from mono_map.mapping.distribution import DistributionConfig
 
-    parts = [source if source != "mono" else f"mono-keep{keep:g}"]
-    if source == "mono":
-        if model:
-            parts.append("model-" + Path(str(model)).stem)
-        if stride != 1:
-            parts.append(f"stride{stride}")
+    if source == "mono" and integrate == "distribution":
+        dd, dcfg = DistributionConfig(), dcfg or DistributionConfig()
+        parts = ["mono-dist" + (f"-eps{dcfg.eps:g}" if dcfg.eps != dd.eps else "")
+                 + (f"-temp{dcfg.temperature:g}" if dcfg.temperature != dd.temperature else "")
+                 + (f"-step{dcfg.ray_step}" if dcfg.ray_step != dd.ray_step else "")
+                 + (f"-min{dcfg.min_update:g}" if dcfg.min_update != dd.min_update else "")]
+    else:
+        parts = [source if source != "mono" else f"mono-keep{keep:g}"]
+    if source == "mono" and model:
+        parts.append("model-" + Path(str(model)).stem)
+    if source in ("mono", "depth-gt") and stride != 1:
+        parts.append(f"stride{stride}")
     parts.append(f"res{cfg.resolution:g}")
     d = OctoMapConfig()
     if cfg.max_range != d.max_range:
@@ -105,18 +143,25 @@ def _frames_tag(frames: range) -> str:
 
 
 def build_and_write(seq, source: str, keep: float, cfg, frames: range, stride: int, model: str | None,
-                    out_dir: Path, name: str | None = None, observers=(), show_progress: bool = True) -> tuple[Path, dict]:
-    """Build one map and write ``<name>.bt`` + ``<name>.json`` atomically; returns (bt path, stats)."""
+                    out_dir: Path, name: str | None = None, observers=(), show_progress: bool = True,
+                    integrate: str = "keep", dcfg=None, write_ot: bool = False) -> tuple[Path, dict]:
+    """Build one map and write ``<name>.bt`` + ``<name>.json`` atomically (and, with write_ot, the
+    probabilistic ``<name>.ot``, which calibration needs: .bt keeps max-likelihood states only);
+    returns (bt path, stats)."""
     from mono_map.io import write_json_atomic
-    from mono_map.mapping.build import build_map, load_predictor, write_tree_bt
+    from mono_map.mapping.build import build_map, load_predictor, write_tree_bt, write_tree_ot
 
     predictor = load_predictor(model) if source == "mono" else None
-    name = name or map_stem(source, keep, cfg, _frames_tag(frames), stride, model)
+    name = name or map_stem(source, keep, cfg, _frames_tag(frames), stride, model, integrate, dcfg)
     result = build_map(seq, source=source, keep=keep, frames=frames, octomap=cfg, stride=stride,
-                       predictor=predictor, observers=observers, show_progress=show_progress)
+                       predictor=predictor, observers=observers, show_progress=show_progress,
+                       integrate=integrate, distribution=dcfg)
     stats = dict(result.stats)
     stats["model"] = (model or "shipped binary checkpoint") if source == "mono" else None
     bt = out_dir / f"{name}.bt"
+    if write_ot:                     # before the .bt: writeBinary turns the tree max-likelihood in memory
+        write_tree_ot(result.tree, out_dir / f"{name}.ot")
+        stats["ot"] = str(out_dir / f"{name}.ot")
     write_tree_bt(result.tree, bt)
     stats["bt"] = str(bt)
     stats["bt_bytes"] = bt.stat().st_size
@@ -133,8 +178,10 @@ def run_build(args) -> int:
 
     if args.source not in BUILD_SOURCES:
         raise MonoMapError(f"--source: unknown source {args.source!r} (choose from {', '.join(BUILD_SOURCES)})")
+    dcfg = distribution_config(args)
     if args.source == "mono":
-        check_keep(args.keep)
+        if args.integrate == "keep":
+            check_keep(args.keep)
         if args.model not in (None, "oracle") and not Path(args.model).exists() and Path(args.model).suffix:
             raise MonoMapError(f"{args.model}: checkpoint not found")
     if args.stride < 1:
@@ -144,8 +191,11 @@ def run_build(args) -> int:
     out_dir = prepare_output_dir(sequence_output_dir(args.out, args.seq))
     seq = open_sequence(args.data_root, args.seq, frames=_frames_needed(args.frames))
     frames, desc = parse_frames(args.frames, len(seq))
-    print(f"mono-map build: sequence {args.seq}, {desc}, source {args.source}"
-          + (f", keep {args.keep:g}" if args.source == "mono" else "") + f", {cfg.resolution:g} m cells")
+    how = ""
+    if args.source == "mono":
+        how = (f", keep {args.keep:g}" if args.integrate == "keep" else
+               f", distribution integration (eps {dcfg.eps:g}, temperature {dcfg.temperature:g})")
+    print(f"mono-map build: sequence {args.seq}, {desc}, source {args.source}{how}, {cfg.resolution:g} m cells")
     observers = []
     if args.viewer or args.rrd:
         from mono_map.viz.rerun_stream import RerunMapLogger
@@ -153,7 +203,8 @@ def run_build(args) -> int:
         observers.append(RerunMapLogger(rrd=args.rrd, spawn=args.viewer, reference_map=args.reference_map,
                                         resolution=cfg.resolution, image_size=seq.image_size))
     bt, stats = build_and_write(seq, args.source, args.keep, cfg, frames, args.stride, args.model, out_dir,
-                                name=args.name, observers=observers)
+                                name=args.name, observers=observers, integrate=args.integrate, dcfg=dcfg,
+                                write_ot=args.ot)
     print(f"wrote {bt} ({stats['bt_bytes'] / 2**20:.1f} MB on disk) and {bt.with_suffix('.json')}")
     print(f"  frames {stats['n_frames']}, points kept {stats['points_kept']:,}, rays cast {stats['rays_cast']:,}, "
           f"leaves {stats['leaf_count']:,}, memory {stats['memory_mb']:.1f} MB (OctoMap memoryUsage), "

@@ -43,11 +43,16 @@ class DistributionConfig:
     """Settings of ``--integrate distribution``.
 
     eps: rays stop where P(surface beyond) < eps; temperature: probabilities are sharpened (< 1)
-    or flattened (> 1) as p^(1/T), renormalised to their mass, before use (1 = as predicted).
+    or flattened (> 1) as p^(1/T), renormalised to their mass, before use (1 = as predicted);
+    ray_step: one ray every ray_step-th pixel row and column (on top of ``--stride``);
+    min_update: updates weaker than this (log-odds magnitude) are dropped — a cell is created only
+    when a ray says something about it (0 = keep all).
     """
 
     eps: float = 1e-3
     temperature: float = 1.0
+    ray_step: int = 1
+    min_update: float = 0.0
 
 
 @dataclass
@@ -66,6 +71,10 @@ def check_distribution_config(cfg: DistributionConfig) -> DistributionConfig:
         raise MonoMapError(f"--eps: must be in (0, 1), got {cfg.eps}")
     if not (cfg.temperature > 0 and np.isfinite(cfg.temperature)):
         raise MonoMapError(f"--temperature: must be a positive number, got {cfg.temperature}")
+    if not (0.0 <= cfg.min_update < 0.4):
+        raise MonoMapError(f"--min-update: must be in [0, 0.4) (log-odds), got {cfg.min_update}")
+    if int(cfg.ray_step) != cfg.ray_step or cfg.ray_step < 1:
+        raise MonoMapError(f"--ray-step: must be a positive integer, got {cfg.ray_step}")
     return cfg
 
 
@@ -134,8 +143,13 @@ def expected_updates(probs: np.ndarray, p_beyond: np.ndarray | None, edges: np.n
 
 
 def far_depth(probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, eps: float) -> np.ndarray:
-    """(N,) depth (metres) where P(surface beyond) first falls below ``eps``; the last edge if it never does
-    (e.g. p_beyond ≥ eps). A point mass's far depth is its depth."""
+    """(N,) depth (metres) where P(surface beyond) first falls below ``eps`` (linear within the bin); the
+    last edge if it never does (e.g. p_beyond ≥ eps). A point mass's far depth is its depth."""
+    from mono_map.mapping.raycast_c import far_depth_c, load_kernel
+
+    kernel = load_kernel()
+    if kernel is not None:
+        return far_depth_c(kernel, probs, p_beyond, edges, eps)
     p = np.asarray(probs, dtype=np.float64)
     n, k = p.shape
     e = np.broadcast_to(np.asarray(edges, dtype=np.float64), (n, k + 1))
@@ -155,12 +169,13 @@ def far_depth(probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, eps: f
 
 def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: np.ndarray, probs: np.ndarray,
                         p_beyond: np.ndarray | None, edges: np.ndarray, resolution: float, hit: float, miss: float,
-                        max_range: float = -1.0) -> CellUpdates:
+                        max_range: float = -1.0, min_update: float = 0.0) -> CellUpdates:
     """One frame's per-cell updates (see the module docstring).
 
     origin: (3,) camera centre (world, metres); far_points: (N, 3) each pixel's point at its far depth
     (world); far_depths: (N,) those depths (metres, as ``edges``); probs (N, K), p_beyond (N,) or None,
-    edges (K+1,) or (N, K+1): the distributions; hit, miss: float32 log-odds of the sensor model.
+    edges (K+1,) or (N, K+1): the distributions; hit, miss: float32 log-odds of the sensor model;
+    min_update: weaker updates are dropped.
     """
     from mono_map.mapping.raycast_c import load_kernel, ray_weights_c
 
@@ -193,6 +208,6 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
     end_keys = coord_to_key(ends, res)
     box = KeyBox(np.minimum(end_keys.min(axis=0), key_origin), np.maximum(end_keys.max(axis=0), key_origin))
     lin, dl = ray_weights_c(kernel, origin32, key_origin, ends, end_keys, inside, scale, probs, pb, edges,
-                            hit, miss, res, box.lo, box.strides, TREE_MAX_VAL, box.size,
+                            hit, miss, res, box.lo, box.strides, TREE_MAX_VAL, box.size, min_update=min_update,
                             dense=box.size <= _DENSE_MAX_CELLS)
     return CellUpdates(keys=box.keys(lin), dl=dl, n_rays=len(pts), lo=box.lo, hi=box.lo + box.dims - 1)

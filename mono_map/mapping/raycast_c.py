@@ -92,7 +92,7 @@ int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float
    t_in and left at t_out (metres; the end cell is left at max(t_out, |end - origin|)) covers depths
    [t_in, t_out] * scale[i] of the ray's piecewise-uniform depth distribution (probs p[i*K..], edges
    e[i*edge_stride..], K bins, p_beyond[i] beyond them). Its expected OctoMap update is
-   dl = P(in)*hit + P(beyond)*miss. Per cell, the rays combine as: the largest positive dl if any,
+   dl = P(in)*hit + P(beyond)*miss; updates smaller than min_update in magnitude are dropped. Per cell, the rays combine as: the largest positive dl if any,
    else the most negative one. With acc (a zeroed float bitmap over the box, 0 = untouched): each
    cell's index is written to out the first time, acc holds the combined dl; returns the count.
    With acc == NULL: (index, dl) pairs with repeats into out / out_dl. -1: cap too small; -2: outside. */
@@ -107,7 +107,33 @@ static inline double cdf_at(double z, const float *p, const double *e, int64_t K
     return c;
 }
 
-#define PUT(x, v) do { float v_ = (v); if (v_ != 0.0f) { if ((x) < 0 || (x) >= acc_size) return -2; \
+/* Far depth of n piecewise-uniform distributions: the depth where P(beyond) = mass - CDF + p_beyond
+   first falls below eps (linear within the bin), else the last edge. */
+void mm_far_depth(const float *probs, const double *p_beyond, const double *edges, int64_t edge_stride,
+                  int64_t K, int64_t n, double eps, double *out)
+{
+    for (int64_t i = 0; i < n; ++i) {
+        const float *p = probs + K * i;
+        const double *e = edges + edge_stride * i;
+        double mass = 0.0;
+        for (int64_t j = 0; j < K; ++j) mass += (double) p[j];
+        double beyond = mass + p_beyond[i];          /* P(beyond) at the lower edge of bin j */
+        double z = e[K];
+        for (int64_t j = 0; j < K; ++j) {
+            double after = beyond - (double) p[j];
+            if (after < eps) {
+                double f = p[j] > 0.0f ? (beyond - eps) / (double) p[j] : 0.0;
+                f = f < 0.0 ? 0.0 : (f > 1.0 ? 1.0 : f);
+                z = e[j] + (e[j + 1] - e[j]) * f;
+                break;
+            }
+            beyond = after;
+        }
+        out[i] = z;
+    }
+}
+
+#define PUT(x, v) do { float v_ = (v); if (v_ != 0.0f && fabsf(v_) >= min_update) { if ((x) < 0 || (x) >= acc_size) return -2; \
         if (acc) { float o_ = acc[(x)]; \
             if (o_ == 0.0f) { if (off >= cap) return -1; acc[(x)] = v_; out[off++] = (x); } \
             else if (v_ > 0.0f ? (o_ < 0.0f || v_ > o_) : (o_ < 0.0f && v_ < o_)) acc[(x)] = v_; } \
@@ -115,7 +141,7 @@ static inline double cdf_at(double z, const float *p, const double *e, int64_t K
 int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const float *ends,
                        const int64_t *key_ends, const uint8_t *has_end, const double *scale, int64_t n,
                        const float *probs, const double *p_beyond, const double *edges, int64_t edge_stride,
-                       int64_t K, float hit, float miss, double res, const int64_t *lo, const int64_t *strides,
+                       int64_t K, float hit, float miss, float min_update, double res, const int64_t *lo, const int64_t *strides,
                        int64_t tree_max_val, float *acc, int64_t acc_size, int64_t *out, float *out_dl,
                        int64_t cap)
 {
@@ -242,9 +268,13 @@ def load_kernel():
         fn.restype = ctypes.c_int64
         wfn = lib.mm_ray_weights
         i64, f32, f64 = ctypes.c_int64, ctypes.c_float, ctypes.c_double
-        wfn.argtypes = [p, p, p, p, p, p, i64, p, p, p, i64, i64, f32, f32, f64, p, p, i64, p, i64, p, p, i64]
+        wfn.argtypes = [p, p, p, p, p, p, i64, p, p, p, i64, i64, f32, f32, f32, f64, p, p, i64, p, i64, p, p, i64]
         wfn.restype = ctypes.c_int64
         fn.weights = wfn
+        ffn = lib.mm_far_depth
+        ffn.argtypes = [p, p, p, i64, i64, i64, f64, p]
+        ffn.restype = None
+        fn.far_depth = ffn
         _LIB = fn
     except (OSError, subprocess.SubprocessError) as exc:
         print(f"mono-map: note: compiled ray kernel unavailable ({type(exc).__name__}); using numpy", file=sys.stderr)
@@ -337,7 +367,7 @@ def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.nda
 def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.ndarray, key_ends: np.ndarray,
                   has_end: np.ndarray, scale: np.ndarray, probs: np.ndarray, p_beyond: np.ndarray,
                   edges: np.ndarray, hit: float, miss: float, resolution: float, lo: np.ndarray,
-                  strides: np.ndarray, tree_max_val: int, box_size: int,
+                  strides: np.ndarray, tree_max_val: int, box_size: int, min_update: float = 0.0,
                   dense: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Run ``mm_ray_weights``: (linear box indices, float32 log-odds updates) of the distribution-weighted
     rays, one entry per distinct cell (rays combined: largest positive update, else most negative).
@@ -366,7 +396,7 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
         out_dl = None if dense else np.empty(cap, dtype=np.float32)
         n = int(fn.weights(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, he.ctypes.data,
                            sc.ctypes.data, len(e), pr.ctypes.data, pb.ctypes.data, ed.ctypes.data, edge_stride, k,
-                           float(hit), float(miss), float(resolution), lo.ctypes.data, st.ctypes.data,
+                           float(hit), float(miss), float(min_update), float(resolution), lo.ctypes.data, st.ctypes.data,
                            int(tree_max_val), None if acc is None else acc.ctypes.data, int(box_size),
                            out.ctypes.data, None if out_dl is None else out_dl.ctypes.data, len(out)))
         if n == -2:
@@ -390,3 +420,14 @@ def combine_updates(lin: np.ndarray, dl: np.ndarray) -> tuple[np.ndarray, np.nda
     hi = np.maximum.reduceat(dl, starts)
     low = np.minimum.reduceat(dl, starts)
     return lin[starts], np.where(hi > 0, hi, low).astype(np.float32)
+
+
+def far_depth_c(fn, probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, eps: float) -> np.ndarray:
+    """``mm_far_depth``: (N,) float64 depth where P(beyond) first falls below eps (see distribution.far_depth)."""
+    pr = np.ascontiguousarray(probs, dtype=np.float32)
+    pb = np.ascontiguousarray(p_beyond, dtype=np.float64)
+    ed = np.ascontiguousarray(edges, dtype=np.float64)
+    out = np.empty(len(pr), dtype=np.float64)
+    fn.far_depth(pr.ctypes.data, pb.ctypes.data, ed.ctypes.data, 0 if ed.ndim == 1 else ed.shape[1], pr.shape[1],
+                 len(pr), float(eps), out.ctypes.data)
+    return out
