@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     print("[3/3] monocular map, keep 1.0, and the mapping table", flush=True)
     table_args = argparse.Namespace(
         seq=args.seq, data_root=args.data_root, frames=f"{frames.start}:{frames.stop}", out=str(out_dir),
-        keeps="0.8,1.0", stride=1, model=None, res=cfg.resolution, max_range=cfg.max_range,
+        keeps="0.8,1.0", stride=1, model=None, paper_only=True, res=cfg.resolution, max_range=cfg.max_range,
         prob_hit=cfg.prob_hit, prob_miss=cfg.prob_miss, clamp_min=cfg.clamp_min, clamp_max=cfg.clamp_max)
     run_table(table_args)
     print(f"recording: {rrd}  (open it with: mono-map view {rrd})")

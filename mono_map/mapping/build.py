@@ -107,15 +107,16 @@ def load_predictor(model: str | None = None):
     return DepthPredictor.load(model, fast=True)
 
 
-def _predict(predictor, seq, i: int, image: np.ndarray, with_probs: bool = False):
+def run_predictor(predictor, seq, i: int, image: np.ndarray, with_probs: bool = False):
     """Predictors with ``predict_frame(seq, i, image)`` (e.g. the ground-truth oracle) get the frame;
     others the image (``DepthPredictor.predict``). with_probs: also the K×H×W bin probabilities."""
+    kw = {"with_probs": True} if with_probs else {}
     if hasattr(predictor, "predict_frame"):
-        return predictor.predict_frame(seq, i, image, with_probs=with_probs)
-    return predictor.predict(image, with_probs=with_probs)
+        return predictor.predict_frame(seq, i, image, **kw)
+    return predictor.predict(image, **kw)
 
 
-def _bin_edges(predictor) -> np.ndarray:
+def bin_edges(predictor) -> np.ndarray:
     """(K+1,) depth-bin edges (metres) of a predictor (BinConfig's defaults if it has none)."""
     from mono_map.depth.bins import DepthBins
 
@@ -195,7 +196,7 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
         bins = getattr(predictor, "bins", None) or BinConfig()
         depth_range = (float(bins.min_depth), float(bins.max_depth))
     integrator = MapIntegrator(cfg, method=method)
-    edges = _bin_edges(predictor) if dist_mode else None
+    edges = bin_edges(predictor) if dist_mode else None
     K = np.asarray(seq.calib.K2, dtype=np.float64)
     per_frame: list[dict] = []
     points_valid = points_kept = rays_cast = 0
@@ -213,7 +214,7 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
             image = depth = entropy = mask = None
             if source == "mono":
                 image = seq.image(i)
-                pred = _predict(predictor, seq, i, image, with_probs=dist_mode)
+                pred = run_predictor(predictor, seq, i, image, with_probs=dist_mode)
                 depth = np.asarray(pred.depth, dtype=np.float32)
                 entropy = np.asarray(pred.entropy, dtype=np.float32)
                 if depth.shape != image.shape[:2] or entropy.shape != image.shape[:2]:

@@ -47,8 +47,10 @@ def _add_integration_args(p: argparse.ArgumentParser) -> None:
 def distribution_config(args):
     from mono_map.mapping.distribution import DistributionConfig, check_distribution_config
 
-    return check_distribution_config(DistributionConfig(eps=args.eps, temperature=args.temperature,
-                                                        ray_step=args.ray_step, min_update=args.min_update))
+    d = DistributionConfig()
+    return check_distribution_config(DistributionConfig(
+        eps=getattr(args, "eps", d.eps), temperature=getattr(args, "temperature", d.temperature),
+        ray_step=getattr(args, "ray_step", d.ray_step), min_update=getattr(args, "min_update", d.min_update)))
 
 
 def register(subparsers) -> None:
@@ -90,6 +92,9 @@ def register(subparsers) -> None:
                    "with --table: lidar-fov, or lidar (the whole 360° LiDAR map, LiDAR-FOV then a scored row)")
     e.add_argument("--seq", default="00", help="sequence for a built reference / the table (default 00)")
     e.add_argument("--table", action="store_true", help="build missing maps and print Table IV + keep sweep")
+    e.add_argument("--paper-only", action="store_true",
+                   help="with --table: only the paper's rows (LiDAR-FOV, keep sweep): no depth-gt, distribution "
+                        "map or calibration")
     e.add_argument("--keeps", default="0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0", help="keep sweep for --table")
     e.add_argument("--frames", default=None, help="frames for built maps (default: the first 500)")
     e.add_argument("--stride", type=int, default=1, help="pixel stride for built mono maps")
