@@ -55,8 +55,22 @@ def integrate_point_masses(integ: MapIntegrator, depth: np.ndarray, T: np.ndarra
     return integ.insert_updates(upd)
 
 
+@pytest.fixture(params=["1-thread", "2-threads", "pairs"])
+def weights_path(request, monkeypatch):
+    """The kernel on one thread, split over two threads (even for small frames), and the sort-combined
+    (index, update) pairs used for boxes too large for the dense buffer."""
+    from mono_map.mapping import distribution, raycast_c
+
+    monkeypatch.setenv("MONO_MAP_RAY_THREADS", "2" if request.param == "2-threads" else "1")
+    if request.param == "2-threads":
+        monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
+    if request.param == "pairs":
+        monkeypatch.setattr(distribution, "_DENSE_MAX_CELLS", 0)
+    return request.param
+
+
 @pytest.mark.parametrize("max_range", [-1.0, 15.0])
-def test_point_masses_reproduce_keep_1_bit_for_bit(max_range):
+def test_point_masses_reproduce_keep_1_bit_for_bit(max_range, weights_path):
     cfg = OctoMapConfig(resolution=0.2, max_range=max_range)
     keep, dist = MapIntegrator(cfg), MapIntegrator(cfg)
     for i in range(4):
@@ -88,6 +102,37 @@ def one_ray(probs, edges, p_beyond=None, res=0.2, eps=1e-3):
     scale = fd[0] / length
     order = np.argsort(centre_z)
     return (centre_z[order] - ORIGIN[2]) * scale, upd.dl[order], fd[0], scale
+
+
+def test_kernel_paths_agree_on_distributions(monkeypatch):
+    from mono_map.mapping import distribution, raycast_c
+
+    rng = np.random.default_rng(7)
+    edges = np.geomspace(1.0, 80.0, 33)
+    n = 3000
+    probs = rng.dirichlet(np.ones(32) * 0.2, size=n).astype(np.float32) * 0.95
+    pb = np.full(n, 0.05)
+    T = pose(1)
+    dirs = rng.normal(size=(n, 3))
+    dirs[:, 2] = np.abs(dirs[:, 2]) + 1.0
+    fd = far_depth(probs, pb, edges, 0.05)
+    far = camera_origin(T) + dirs / dirs[:, 2:3] * fd[:, None]
+
+    def run():
+        u = distribution_update(camera_origin(T), far, fd, probs, pb, edges, 0.2, HIT, MISS)
+        order = np.lexsort(u.keys.T)
+        return u.keys[order], u.dl[order]
+
+    monkeypatch.setenv("MONO_MAP_RAY_THREADS", "1")
+    k1, d1 = run()
+    monkeypatch.setenv("MONO_MAP_RAY_THREADS", "2")
+    monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
+    k2, d2 = run()
+    monkeypatch.setattr(distribution, "_DENSE_MAX_CELLS", 0)
+    k3, d3 = run()
+    assert len(k1) > 50_000 and (d1 > 0).any() and (d1 < 0).any()
+    for k, d in ((k2, d2), (k3, d3)):
+        assert np.array_equal(k, k1) and np.array_equal(d, d1)
 
 
 def test_kernel_matches_reference_formula():

@@ -139,12 +139,11 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
     pb_img = getattr(pred, "p_beyond", None)
     if pb_img is not None:
         valid = valid & ~(np.asarray(pb_img) > 1.0 - dcfg.eps)
-    if dcfg.ray_step > 1:
-        grid = np.zeros(valid.shape, dtype=bool)
-        grid[::dcfg.ray_step, ::dcfg.ray_step] = True
-        valid = valid & grid
-    v, u = np.nonzero(valid)
-    p = apply_temperature(np.ascontiguousarray(probs[:, v, u].T), dcfg.temperature)
+    s = dcfg.ray_step
+    sub = valid[::s, ::s]
+    v, u = np.nonzero(sub)
+    p = apply_temperature(np.moveaxis(probs[:, ::s, ::s], 0, -1)[sub], dcfg.temperature)   # (N, K) rows
+    v, u = v * s, u * s
     pb = np.zeros(len(v)) if pb_img is None else np.asarray(pb_img, dtype=np.float64)[v, u]
     fd = far_depth(p, pb, edges, dcfg.eps)
     upd = distribution_update(camera_origin(T_world_cam2), pixel_points_to_world(u, v, fd, K, T_world_cam2), fd,

@@ -371,43 +371,82 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
                   dense: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Run ``mm_ray_weights``: (linear box indices, float32 log-odds updates) of the distribution-weighted
     rays, one entry per distinct cell (rays combined: largest positive update, else most negative).
-    dense=True uses a float32 array over the whole box (zeroed lazily by the OS); dense=False writes
+    dense=True accumulates in a float32 buffer over the whole box (reused across frames; on two threads
+    for large frames, each half in its own buffer, merged by the same rule); dense=False writes
     (index, update) pairs with repeats and combines them here (for boxes too large to allocate).
     edges: (K+1,) for all rays or (N, K+1) per ray, float64 metres."""
-    o = np.ascontiguousarray(origin32, dtype=np.float32)
-    ko = np.ascontiguousarray(key_origin, dtype=np.int64)
-    e = np.ascontiguousarray(ends32, dtype=np.float32)
-    ke = np.ascontiguousarray(key_ends, dtype=np.int64)
-    he = np.ascontiguousarray(has_end, dtype=np.uint8)
-    sc = np.ascontiguousarray(scale, dtype=np.float64)
-    pr = np.ascontiguousarray(probs, dtype=np.float32)
-    pb = np.ascontiguousarray(p_beyond, dtype=np.float64)
-    ed = np.ascontiguousarray(edges, dtype=np.float64)
-    lo = np.ascontiguousarray(lo, dtype=np.int64)
-    st = np.ascontiguousarray(strides, dtype=np.int64)
-    k = pr.shape[1]
-    edge_stride = 0 if ed.ndim == 1 else ed.shape[1]
-    cap = _capacity(ke, ko) + len(e)
-    if dense:
-        cap = min(cap, box_size)
+    c = dict(o=np.ascontiguousarray(origin32, dtype=np.float32), ko=np.ascontiguousarray(key_origin, dtype=np.int64),
+             lo=np.ascontiguousarray(lo, dtype=np.int64), st=np.ascontiguousarray(strides, dtype=np.int64),
+             hit=float(hit), miss=float(miss), min_update=float(min_update), res=float(resolution),
+             tmv=int(tree_max_val), box_size=int(box_size))
+    rays = dict(e=np.ascontiguousarray(ends32, dtype=np.float32), ke=np.ascontiguousarray(key_ends, dtype=np.int64),
+                he=np.ascontiguousarray(has_end, dtype=np.uint8), sc=np.ascontiguousarray(scale, dtype=np.float64),
+                pr=np.ascontiguousarray(probs, dtype=np.float32), pb=np.ascontiguousarray(p_beyond, dtype=np.float64),
+                ed=np.ascontiguousarray(edges, dtype=np.float64))
+    if not dense:
+        lin, dl = _weights_run(fn, c, rays, None)
+        return combine_updates(lin, dl)
+    n = len(rays["e"])
+    if n < _PARALLEL_MIN_RAYS or _threads() < 2:
+        acc = _zeroed_accumulator(0, box_size)
+        lin, _ = _weights_run(fn, c, rays, acc)
+        dl = acc[lin]
+        acc[lin] = 0.0                       # leave the buffer zeroed for the next frame
+        return lin, dl
+    steps = np.cumsum(np.abs(rays["ke"] - c["ko"][None, :]).sum(axis=1))
+    cut = int(np.searchsorted(steps, steps[-1] / 2))
+    halves = [{k: (v if (k == "ed" and v.ndim == 1) else v[sl]) for k, v in rays.items()}
+              for sl in (slice(0, cut), slice(cut, n))]
+    acc_a, acc_b = _zeroed_accumulator(0, box_size), _zeroed_accumulator(1, box_size)
+    future = _pool().submit(_weights_run, fn, c, halves[1], acc_b)
+    lin_a, _ = _weights_run(fn, c, halves[0], acc_a)
+    lin_b, _ = future.result()
+    old, new = acc_a[lin_b], acc_b[lin_b]
+    acc_b[lin_b] = 0.0
+    take = (old == 0) | np.where(new > 0, (old < 0) | (new > old), (old < 0) & (new < old))
+    acc_a[lin_b[take]] = new[take]
+    lin = np.concatenate([lin_a, lin_b[old == 0]])
+    dl = acc_a[lin]
+    acc_a[lin] = 0.0
+    return lin, dl
+
+
+def _weights_run(fn, c: dict, r: dict, acc: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """One ``mm_ray_weights`` call over rays ``r``: (distinct indices, None) accumulating into ``acc``, or
+    with acc None the (index, update) pairs with repeats."""
+    k = r["pr"].shape[1]
+    edge_stride = 0 if r["ed"].ndim == 1 else r["ed"].shape[1]
+    cap = _capacity(r["ke"], c["ko"]) + len(r["e"])
+    if acc is not None:
+        cap = min(cap, c["box_size"])
     while True:
         out = np.empty(cap, dtype=np.int64)
-        acc = np.zeros(box_size, dtype=np.float32) if dense else None
-        out_dl = None if dense else np.empty(cap, dtype=np.float32)
-        n = int(fn.weights(o.ctypes.data, ko.ctypes.data, e.ctypes.data, ke.ctypes.data, he.ctypes.data,
-                           sc.ctypes.data, len(e), pr.ctypes.data, pb.ctypes.data, ed.ctypes.data, edge_stride, k,
-                           float(hit), float(miss), float(min_update), float(resolution), lo.ctypes.data, st.ctypes.data,
-                           int(tree_max_val), None if acc is None else acc.ctypes.data, int(box_size),
-                           out.ctypes.data, None if out_dl is None else out_dl.ctypes.data, len(out)))
+        out_dl = None if acc is not None else np.empty(cap, dtype=np.float32)
+        n = int(fn.weights(c["o"].ctypes.data, c["ko"].ctypes.data, r["e"].ctypes.data, r["ke"].ctypes.data,
+                           r["he"].ctypes.data, r["sc"].ctypes.data, len(r["e"]), r["pr"].ctypes.data,
+                           r["pb"].ctypes.data, r["ed"].ctypes.data, edge_stride, k, c["hit"], c["miss"],
+                           c["min_update"], c["res"], c["lo"].ctypes.data, c["st"].ctypes.data, c["tmv"],
+                           None if acc is None else acc.ctypes.data, c["box_size"], out.ctypes.data,
+                           None if out_dl is None else out_dl.ctypes.data, len(out)))
         if n == -2:
             raise AssertionError("ray left its bounding box")  # the margin covers DDA overshoot
         if n >= 0:
-            break
+            return out[:n], None if out_dl is None else out_dl[:n]
+        if acc is not None:     # cannot happen (distinct cells <= box); guard against a partial write
+            raise AssertionError("accumulator capacity exceeded")
         cap *= 2
-    lin = out[:n]
-    if dense:
-        return lin, acc[lin]
-    return combine_updates(lin, out_dl[:n])
+
+
+_ACC: list[np.ndarray] = [np.zeros(0, dtype=np.float32), np.zeros(0, dtype=np.float32)]
+
+
+def _zeroed_accumulator(slot: int, size: int) -> np.ndarray:
+    """Zeroed float32 buffer ``slot`` (one per thread) of at least ``size`` cells, reused across frames
+    (allocating and faulting in hundreds of MB per frame would cost more than the rays); callers zero
+    what they touched."""
+    if len(_ACC[slot]) < size:
+        _ACC[slot] = np.zeros(max(size, int(len(_ACC[slot]) * 1.25)), dtype=np.float32)
+    return _ACC[slot]
 
 
 def combine_updates(lin: np.ndarray, dl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
