@@ -238,3 +238,46 @@ def test_far_depth_kernel_matches_numpy(monkeypatch):
     monkeypatch.setenv("MONO_MAP_NO_C", "1")
     np.testing.assert_allclose(far_depth(p, pb, edges, 0.05), fast, rtol=1e-9)
     assert (fast[pb >= 0.05] == 80.0).all()
+
+
+class WallSequence:
+    """A hand-built 'synthetic sequence': the camera looks along +z at a wall 10 m away (depth_2 = 10 m),
+    the top rows are sky (no depth)."""
+
+    name = "wall"
+
+    def __init__(self, n=2, h=48, w=128):
+        self.n, self.h, self.w = n, h, w
+        self.calib = type("Calib", (), {"K2": K})()
+        self.times = np.arange(n, dtype=float)
+        self.image_size = (h, w)
+        self.path = None
+
+    def __len__(self):
+        return self.n
+
+    def T_world_cam2(self, i):
+        T = np.eye(4)
+        T[:3, 3] = [0.0, 0.0, 0.5 * i]
+        return T
+
+    def depth(self, i):
+        d = np.full((self.h, self.w), 10.0 - 0.5 * i, np.float32)   # the wall stays at world z = 10 m
+        d[:8] = 0.0
+        return d
+
+
+def test_depth_gt_map_of_a_hand_built_wall():
+    from mono_map.mapping.build import build_map
+
+    res = build_map(WallSequence(), "depth-gt", show_progress=False)
+    leaves = tree_leaves(res.tree)
+    codes, leaf = leaves.expand()
+    from mono_map.eval.map_metrics import morton_to_keys
+
+    z = key_to_coord(morton_to_keys(codes), 0.2)[:, 2]
+    occ = leaves.occupied[leaf]
+    assert occ.sum() > 100
+    assert np.all(np.abs(z[occ] - 10.0) <= 0.2)                  # occupied exactly at the wall
+    assert (z[~occ] < 10.0).all()                                # free space in front of it only
+    assert res.stats["source"] == "depth-gt" and res.stats["points_kept"] == 2 * 40 * 128

@@ -43,6 +43,7 @@ def main(argv=None) -> int:
     p.add_argument("--min-update", default="0,0.05")
     p.add_argument("--ray-step", default="2")
     p.add_argument("--temperature", default="1")
+    p.add_argument("--extra", default="", help="more candidates 'eps:min:step:T', separated by ';'")
     p.add_argument("--prob-hit", type=float, default=0.7)
     args = p.parse_args(argv)
     if args.seq == "00":
@@ -59,6 +60,9 @@ def main(argv=None) -> int:
     grid = [DistributionConfig(eps=float(e), min_update=float(m), ray_step=int(s), temperature=float(t))
             for e, m, s, t in itertools.product(args.eps.split(","), args.min_update.split(","),
                                                 args.ray_step.split(","), args.temperature.split(","))]
+    for c in filter(None, args.extra.split(";")):
+        e, m, st, t = c.split(":")
+        grid.append(DistributionConfig(eps=float(e), min_update=float(m), ray_step=int(st), temperature=float(t)))
     cands = {f"keep {k:g}": (k, MapIntegrator(cfg), [0.0]) for k in (0.8, 1.0)}
     for d in grid:
         cands[f"dist eps {d.eps:g} min {d.min_update:g} step {d.ray_step} T {d.temperature:g}"] = (d, MapIntegrator(cfg), [0.0])
