@@ -26,6 +26,43 @@ C_SOURCE = r"""
 #include <float.h>
 #include <stdint.h>
 
+/* computeRayKeys' set-up for the ray origin -> e: steps, tMax, tDelta (OctoMap's types); returns the
+   float length |e - origin|. */
+static inline float dda_setup(const float *origin, const float *e, const int64_t *key_origin, double res,
+                              int64_t tree_max_val, int *step, double *tMax, double *tDelta)
+{
+    float d[3] = {e[0] - origin[0], e[1] - origin[1], e[2] - origin[2]};
+    float nsq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    float length = (float) sqrt((double) nsq);
+    d[0] /= length; d[1] /= length; d[2] /= length;
+    for (int a = 0; a < 3; ++a) {
+        if (d[a] > 0.0) step[a] = 1;
+        else if (d[a] < 0.0) step[a] = -1;
+        else step[a] = 0;
+        if (step[a] != 0) {
+            double border = ((double) ((int) key_origin[a] - (int) tree_max_val) + 0.5) * res;
+            border += (float) (step[a] * res * 0.5);
+            tMax[a] = (border - (double) origin[a]) / (double) d[a];
+            tDelta[a] = res / fabs((double) d[a]);
+        } else {
+            tMax[a] = DBL_MAX;
+            tDelta[a] = DBL_MAX;
+        }
+    }
+    return length;
+}
+
+/* One DDA step (the axis whose border is nearest); returns the linear-index change. */
+static inline int64_t dda_step(int64_t *cur, const int *step, double *tMax, const double *tDelta, const int64_t *dl)
+{
+    int dim;
+    if (tMax[0] < tMax[1]) dim = (tMax[0] < tMax[2]) ? 0 : 2;
+    else dim = (tMax[1] < tMax[2]) ? 1 : 2;
+    cur[dim] += step[dim];
+    tMax[dim] += tDelta[dim];
+    return dl[dim];
+}
+
 /* computeRayKeys(origin, end) for n ends. With mark == NULL: writes the linear indices to out
    (the origin cell first for every ray that leaves it) and returns their number, or -1 if cap is
    too small. With mark (a zeroed bitmap of mark_size bytes over the box): writes each index only the
@@ -47,36 +84,14 @@ int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float
         if (ke[0] == key_origin[0] && ke[1] == key_origin[1] && ke[2] == key_origin[2])
             continue;
         EMIT(lin_o);
-        float d[3] = {e[0] - origin[0], e[1] - origin[1], e[2] - origin[2]};
-        float nsq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-        float length = (float) sqrt((double) nsq);
-        d[0] /= length; d[1] /= length; d[2] /= length;
         int step[3];
         double tMax[3], tDelta[3];
         int64_t cur[3] = {key_origin[0], key_origin[1], key_origin[2]};
-        for (int a = 0; a < 3; ++a) {
-            if (d[a] > 0.0) step[a] = 1;
-            else if (d[a] < 0.0) step[a] = -1;
-            else step[a] = 0;
-            if (step[a] != 0) {
-                double border = ((double) ((int) cur[a] - (int) tree_max_val) + 0.5) * res;
-                border += (float) (step[a] * res * 0.5);
-                tMax[a] = (border - (double) origin[a]) / (double) d[a];
-                tDelta[a] = res / fabs((double) d[a]);
-            } else {
-                tMax[a] = DBL_MAX;
-                tDelta[a] = DBL_MAX;
-            }
-        }
+        const float length = dda_setup(origin, e, key_origin, res, tree_max_val, step, tMax, tDelta);
         int64_t lin = lin_o;
         const int64_t dl[3] = {step[0] * strides[0], step[1] * strides[1], step[2] * strides[2]};
         for (;;) {
-            int dim;
-            if (tMax[0] < tMax[1]) dim = (tMax[0] < tMax[2]) ? 0 : 2;
-            else dim = (tMax[1] < tMax[2]) ? 1 : 2;
-            cur[dim] += step[dim];
-            tMax[dim] += tDelta[dim];
-            lin += dl[dim];
+            lin += dda_step(cur, step, tMax, tDelta, dl);
             if (cur[0] == ke[0] && cur[1] == ke[1] && cur[2] == ke[2]) break;
             double dist = tMax[0] < tMax[1] ? tMax[0] : tMax[1];
             dist = dist < tMax[2] ? dist : tMax[2];
@@ -166,40 +181,17 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
             }
             continue;
         }
-        float d[3] = {e[0] - origin[0], e[1] - origin[1], e[2] - origin[2]};
-        float nsq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-        float length = (float) sqrt((double) nsq);
-        d[0] /= length; d[1] /= length; d[2] /= length;
         int step[3];
         double tMax[3], tDelta[3];
         int64_t cur[3] = {key_origin[0], key_origin[1], key_origin[2]};
-        for (int a = 0; a < 3; ++a) {
-            if (d[a] > 0.0) step[a] = 1;
-            else if (d[a] < 0.0) step[a] = -1;
-            else step[a] = 0;
-            if (step[a] != 0) {
-                double border = ((double) ((int) cur[a] - (int) tree_max_val) + 0.5) * res;
-                border += (float) (step[a] * res * 0.5);
-                tMax[a] = (border - (double) origin[a]) / (double) d[a];
-                tDelta[a] = res / fabs((double) d[a]);
-            } else {
-                tMax[a] = DBL_MAX;
-                tDelta[a] = DBL_MAX;
-            }
-        }
+        const float length = dda_setup(origin, e, key_origin, res, tree_max_val, step, tMax, tDelta);
         int64_t lin = lin_o;
         const int64_t dl[3] = {step[0] * strides[0], step[1] * strides[1], step[2] * strides[2]};
         double c_in = cdf_at(0.0, p, ed, K, &k, &cum);
-        double t_out = tMax[0] < tMax[1] ? tMax[0] : tMax[1];
-        t_out = t_out < tMax[2] ? t_out : tMax[2];
+        double t_out = fmin(fmin(tMax[0], tMax[1]), tMax[2]);
         int64_t cell = lin_o;            /* the cell being left, entered with CDF c_in */
         for (;;) {
-            int dim;
-            if (tMax[0] < tMax[1]) dim = (tMax[0] < tMax[2]) ? 0 : 2;
-            else dim = (tMax[1] < tMax[2]) ? 1 : 2;
-            cur[dim] += step[dim];
-            tMax[dim] += tDelta[dim];
-            lin += dl[dim];
+            lin += dda_step(cur, step, tMax, tDelta, dl);
             int at_end = cur[0] == ke[0] && cur[1] == ke[1] && cur[2] == ke[2];
             double dist = tMax[0] < tMax[1] ? tMax[0] : tMax[1];
             dist = dist < tMax[2] ? dist : tMax[2];
