@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from mono_map.errors import MonoMapError
-from mono_map.mapping.raycast import TREE_MAX_VAL, _spread_bits
+from mono_map.mapping.raycast import TREE_MAX_VAL, _spread_bits, sorted_unique
 
 TREE_DEPTH = 16
 
@@ -128,7 +128,7 @@ def compare_leaves(map_leaves: Leaves, ref_leaves: Leaves) -> dict:
     if not np.isclose(map_leaves.resolution, ref_leaves.resolution):
         raise MonoMapError(f"map resolution {map_leaves.resolution} m differs from the reference's "
                            f"{ref_leaves.resolution} m: cell grids do not coincide")
-    bounds = np.unique(np.concatenate([map_leaves.start, map_leaves.start + map_leaves.length,
+    bounds = sorted_unique(np.concatenate([map_leaves.start, map_leaves.start + map_leaves.length,
                                        ref_leaves.start, ref_leaves.start + ref_leaves.length]))
     seg_start, seg_len = bounds[:-1], np.diff(bounds)
     m = _state_at(map_leaves, seg_start)
@@ -244,7 +244,7 @@ def calibration(map_leaves: Leaves, ref_leaves: Leaves, n_bins: int = 10) -> dic
     if not np.isclose(map_leaves.resolution, ref_leaves.resolution):
         raise MonoMapError(f"map resolution {map_leaves.resolution} m differs from the reference's "
                            f"{ref_leaves.resolution} m: cell grids do not coincide")
-    bounds = np.unique(np.concatenate([map_leaves.start, map_leaves.start + map_leaves.length,
+    bounds = sorted_unique(np.concatenate([map_leaves.start, map_leaves.start + map_leaves.length,
                                        ref_leaves.start, ref_leaves.start + ref_leaves.length]))
     seg, w = bounds[:-1], np.diff(bounds).astype(np.float64)
     value = _value_at(map_leaves, seg)

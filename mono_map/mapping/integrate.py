@@ -18,7 +18,7 @@ import numpy as np
 
 from mono_map.config import OctoMapConfig
 from mono_map.errors import MonoMapError
-from mono_map.mapping.raycast import KeySets, compute_update, key_to_coord, morton_order
+from mono_map.mapping.raycast import KeySets, compute_update, key_to_coord, morton_order, sorted_unique
 
 
 def make_octree(cfg: OctoMapConfig):
@@ -125,7 +125,7 @@ class LogOddsMirror:
         if create:
             missing = slots < 0
             if missing.any():
-                new_blocks = np.unique(flat[missing])
+                new_blocks = sorted_unique(flat[missing])
                 start = self.n_blocks
                 self.n_blocks += len(new_blocks)
                 tbl[new_blocks] = np.arange(start, self.n_blocks, dtype=np.int32)
@@ -381,7 +381,7 @@ class MapIntegrator:
         """True when the updates would need more than MAX_GROUPS ``updateNodes`` calls (per-cell distribution
         updates: nearly every cell its own increment)."""
         inc = (new - np.where(np.isnan(old), np.float32(0.0), old)).astype(np.float32)
-        return len(np.unique(inc.view(np.uint32))) > self.MAX_GROUPS
+        return len(sorted_unique(inc.view(np.uint32))) > self.MAX_GROUPS
 
     def _update_grouped(self, centres: np.ndarray, increments: np.ndarray) -> None:
         """``updateNodes`` once per distinct float32 increment."""

@@ -28,7 +28,7 @@ from mono_map.errors import MonoMapError
 
 TREE_MAX_VAL = 32768          # OctoMap 1.10, tree depth 16
 _DBL_MAX = np.finfo(np.float64).max
-_BITMAP_MAX_CELLS = 400_000_000  # bigger frame boxes fall back to np.unique
+_BITMAP_MAX_CELLS = 400_000_000  # bigger frame boxes fall back to sorting
 
 
 @dataclass
@@ -61,6 +61,13 @@ def key_in_range(keys: np.ndarray) -> np.ndarray:
 def key_to_coord(keys: np.ndarray, resolution: float) -> np.ndarray:
     """Cell centres (float64 metres) of int keys: ``(key - 32768 + 0.5) * res``."""
     return (np.asarray(keys, dtype=np.float64) - TREE_MAX_VAL + 0.5) * float(resolution)
+
+
+def sorted_unique(a: np.ndarray) -> np.ndarray:
+    """``np.unique(a)`` by sorting: numpy 2.4's hash-based ``np.unique`` is ~100x slower on structured
+    int64 codes such as packed keys or Morton codes (measured: 3 M codes 7.7 s vs 0.1 s)."""
+    s = np.sort(np.asarray(a).ravel())
+    return s[np.r_[True, s[1:] != s[:-1]]] if len(s) else s
 
 
 def pack_keys(keys: np.ndarray) -> np.ndarray:
@@ -313,11 +320,11 @@ def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
             free_lin = np.flatnonzero(mark)
         mark[occ_lin] = 2                          # occupied wins
         free_u = free_lin[mark[free_lin] == 1]
-        occ_u = np.unique(occ_lin)
+        occ_u = sorted_unique(occ_lin)
     else:
         free_lin = _ray_cells(origin32, ray_ends, res, box, key_origin)
         _check_in_box(free_lin, box)
-        occ_u = np.unique(occ_lin)
-        free_u = np.setdiff1d(np.unique(free_lin), occ_u, assume_unique=True)
+        occ_u = sorted_unique(occ_lin)
+        free_u = np.setdiff1d(sorted_unique(free_lin), occ_u, assume_unique=True)
     return KeySets(free=box.keys(free_u), occupied=box.keys(occ_u), n_rays=n_rays, n_endpoints=len(occ_u),
                    lo=box.lo, hi=box.lo + box.dims - 1)
