@@ -281,3 +281,40 @@ def test_depth_gt_map_of_a_hand_built_wall():
     assert np.all(np.abs(z[occ] - 10.0) <= 0.2)                  # occupied exactly at the wall
     assert (z[~occ] < 10.0).all()                                # free space in front of it only
     assert res.stats["source"] == "depth-gt" and res.stats["points_kept"] == 2 * 40 * 128
+
+
+def test_oracle_distribution_build_with_an_observer(tiny_root):
+    """The whole build path on the oracle's distributions: observers get every frame, cells become
+    occupied, and a sharp oracle's map keeps its occupied cells near the true surfaces."""
+    from mono_map.data.kitti import open_sequence
+    from mono_map.eval.map_metrics import surface_precision
+    from mono_map.mapping.build import build_map
+    from mono_map.mapping.distribution import DistributionConfig
+    from mono_map.mapping.oracle import NoisyGroundTruthPredictor
+
+    seq = open_sequence(tiny_root, "tiny", generate=False)
+    seen = []
+    res = build_map(seq, "mono", frames=range(0, 2), stride=2, integrate="distribution",
+                    distribution=DistributionConfig(eps=0.1, ray_step=2),
+                    predictor=NoisyGroundTruthPredictor(sigma=0.01, edge_sigma=0.0), observers=[seen.append],
+                    show_progress=False)
+    assert len(seen) == 2 and len(seen[0].occupied_keys_changed) > 0
+    assert res.stats["integrate"] == "distribution" and res.stats["keep"] is None
+    gt = build_map(seq, "depth-gt", frames=range(0, 2), stride=2, show_progress=False)
+    assert surface_precision(tree_leaves(res.tree), tree_leaves(gt.tree))["surface_precision"] > 0.9
+
+
+def test_heads_without_probabilities_are_one_clear_error(tiny_root):
+    from mono_map.data.kitti import open_sequence
+    from mono_map.depth.inference import DepthPrediction
+    from mono_map.mapping.build import build_map
+
+    class NoProbs:
+        def predict(self, image, with_probs=False):
+            h, w = image.shape[:2]
+            return DepthPrediction(depth=np.full((h, w), 10.0, np.float32), entropy=np.ones((h, w), np.float32))
+
+    seq = open_sequence(tiny_root, "tiny", generate=False)
+    with pytest.raises(MonoMapError, match="no bin probabilities"):
+        build_map(seq, "mono", frames=range(0, 1), integrate="distribution", predictor=NoProbs(),
+                  show_progress=False)

@@ -62,18 +62,20 @@ def main(argv=None) -> int:
     p.add_argument("--ray-step", default=str(d.ray_step))
     p.add_argument("--temperature", default=str(d.temperature))
     p.add_argument("--prob-hit", type=float, default=0.7)
+    p.add_argument("--prob-miss", type=float, default=0.4)
     p.add_argument("--refs", default=None, help="directory with built lidar-fov / depth-gt maps of these frames")
     p.add_argument("--out", default=None, help="write Markdown, JSON and plots here")
     args = p.parse_args(argv)
     if args.tune and args.seq == "00":
         raise SystemExit("tune on a training town, never on 00")
-    cfg = OctoMapConfig(prob_hit=args.prob_hit)
+    cfg = OctoMapConfig(prob_hit=args.prob_hit, prob_miss=args.prob_miss)
     seq = open_sequence(args.data_root, args.seq, generate=False)
     frames, desc = parse_frames(args.frames, len(seq))
     refs = Path(args.refs) if args.refs else None
-    print(f"sequence {args.seq}, {desc}, model {args.model}, prob_hit {cfg.prob_hit}", flush=True)
-    ref = reference_leaves(seq, "lidar-fov", frames, cfg, refs)
-    surf = reference_leaves(seq, "depth-gt", frames, cfg, refs)
+    print(f"sequence {args.seq}, {desc}, model {args.model}, prob_hit {cfg.prob_hit}, prob_miss {cfg.prob_miss}",
+          flush=True)
+    ref = reference_leaves(seq, "lidar-fov", frames, OctoMapConfig(), refs)    # references: default sensor model
+    surf = reference_leaves(seq, "depth-gt", frames, OctoMapConfig(), refs)
     predictor = load_predictor(None if args.model == "shipped" else args.model)
     edges = bin_edges(predictor)
     grid = [DistributionConfig(eps=float(e), min_update=float(m), ray_step=int(s), temperature=float(t))
