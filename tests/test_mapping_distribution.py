@@ -315,3 +315,18 @@ def test_heads_without_probabilities_are_one_clear_error(tiny_root):
     with pytest.raises(MonoMapError, match="no bin probabilities"):
         build_map(seq, "mono", frames=range(0, 1), integrate="distribution", predictor=NoProbs(),
                   show_progress=False)
+
+
+def test_narrow_bins_place_a_sharp_pixel_at_its_local_mean():
+    from mono_map.mapping.distribution import narrow_bins
+
+    edges = np.geomspace(1.0, 80.0, 65)
+    lc = 0.5 * (np.log(edges[1:]) + np.log(edges[:-1]))
+    p = np.zeros((1, 64), np.float32)
+    p[0, 40], p[0, 41] = 0.7, 0.3                          # a sharp pixel between two bin centres
+    q, e = narrow_bins(p, edges, 0.2)
+    check_distribution(q, None, e)                          # a valid distribution
+    local_mean = np.exp(0.7 * lc[40] + 0.3 * lc[41])
+    fd_lo = far_depth(q, np.zeros(1), e, 0.5)[0]           # the median falls in the modal bin's narrow support
+    assert abs(np.log(fd_lo / local_mean)) < 0.1 * (lc[1] - lc[0])
+    assert np.isclose(q.sum(), 1.0) and (np.diff(e[0]) >= 0).all()

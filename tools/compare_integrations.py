@@ -61,6 +61,7 @@ def main(argv=None) -> int:
     p.add_argument("--min-update", default=str(d.min_update))
     p.add_argument("--ray-step", default=str(d.ray_step))
     p.add_argument("--temperature", default=str(d.temperature))
+    p.add_argument("--bin-spread", default=str(d.bin_spread))
     p.add_argument("--prob-hit", type=float, default=0.7)
     p.add_argument("--prob-miss", type=float, default=0.4)
     p.add_argument("--refs", default=None, help="directory with built lidar-fov / depth-gt maps of these frames")
@@ -78,15 +79,17 @@ def main(argv=None) -> int:
     surf = reference_leaves(seq, "depth-gt", frames, OctoMapConfig(), refs)
     predictor = load_predictor(None if args.model == "shipped" else args.model)
     edges = bin_edges(predictor)
-    grid = [DistributionConfig(eps=float(e), min_update=float(m), ray_step=int(s), temperature=float(t))
-            for e, m, s, t in itertools.product(args.eps.split(","), args.min_update.split(","),
-                                                args.ray_step.split(","), args.temperature.split(","))]
+    grid = [DistributionConfig(eps=float(e), min_update=float(m), ray_step=int(s), temperature=float(t),
+                               bin_spread=float(b))
+            for e, m, s, t, b in itertools.product(args.eps.split(","), args.min_update.split(","),
+                                                   args.ray_step.split(","), args.temperature.split(","),
+                                                   args.bin_spread.split(","))]
     cands = {}
     for k in sorted({float(k) for k in args.keeps.split(",")}, reverse=True):
         cands["mono (keep 1.0)" if k == 1.0 else f"mono keep {k:g}"] = (k, MapIntegrator(cfg), [0.0])
     for g in grid:
         name = "mono, distribution" if len(grid) == 1 else (
-            f"dist eps {g.eps:g} min {g.min_update:g} step {g.ray_step} T {g.temperature:g}")
+            f"dist eps {g.eps:g} min {g.min_update:g} step {g.ray_step} T {g.temperature:g} spread {g.bin_spread:g}")
         cands[name] = (g, MapIntegrator(cfg), [0.0])
     K = seq.calib.K2
     t_start = time.perf_counter()

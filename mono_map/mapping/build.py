@@ -23,7 +23,8 @@ import numpy as np
 from mono_map.config import BinConfig, OctoMapConfig
 from mono_map.errors import MonoMapError
 from mono_map.mapping.distribution import (INTEGRATIONS, DistributionConfig, apply_temperature,
-                                           check_distribution_config, distribution_update, far_depth)
+                                           check_distribution_config, distribution_update, far_depth,
+                                           narrow_bins)
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
 from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
@@ -145,6 +146,8 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
     p = apply_temperature(np.moveaxis(probs[:, ::s, ::s], 0, -1)[sub], dcfg.temperature)   # (N, K) rows
     v, u = v * s, u * s
     pb = np.zeros(len(v)) if pb_img is None else np.asarray(pb_img, dtype=np.float64)[v, u]
+    if dcfg.bin_spread < 1.0:
+        p, edges = narrow_bins(p, edges, dcfg.bin_spread)
     fd = far_depth(p, pb, edges, dcfg.eps)
     upd = distribution_update(camera_origin(T_world_cam2), pixel_points_to_world(u, v, fd, K, T_world_cam2), fd,
                               p, pb, edges, integrator.cfg.resolution, integrator.hit, integrator.miss,

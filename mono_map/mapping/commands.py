@@ -40,6 +40,9 @@ def _add_integration_args(p: argparse.ArgumentParser) -> None:
                    help=f"distribution: probabilities p^(1/T), renormalised (default {d.temperature:g} = as predicted)")
     g.add_argument("--min-update", type=float, default=d.min_update,
                    help=f"distribution: drop per-cell updates weaker than this log-odds magnitude (default {d.min_update:g})")
+    g.add_argument("--bin-spread", type=float, default=d.bin_spread,
+                   help=f"distribution: spread each bin's mass over this central fraction of the bin, placed at the "
+                        f"pixel's local mean (default {d.bin_spread:g} = whole bins)")
     g.add_argument("--ray-step", type=int, default=d.ray_step,
                    help=f"distribution: one ray every N-th pixel row and column (default {d.ray_step})")
 
@@ -50,7 +53,8 @@ def distribution_config(args):
     d = DistributionConfig()
     return check_distribution_config(DistributionConfig(
         eps=getattr(args, "eps", d.eps), temperature=getattr(args, "temperature", d.temperature),
-        ray_step=getattr(args, "ray_step", d.ray_step), min_update=getattr(args, "min_update", d.min_update)))
+        ray_step=getattr(args, "ray_step", d.ray_step), min_update=getattr(args, "min_update", d.min_update),
+        bin_spread=getattr(args, "bin_spread", d.bin_spread)))
 
 
 def register(subparsers) -> None:
@@ -125,7 +129,8 @@ def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model
         parts = ["mono-dist" + (f"-eps{dcfg.eps:g}" if dcfg.eps != dd.eps else "")
                  + (f"-temp{dcfg.temperature:g}" if dcfg.temperature != dd.temperature else "")
                  + (f"-step{dcfg.ray_step}" if dcfg.ray_step != dd.ray_step else "")
-                 + (f"-min{dcfg.min_update:g}" if dcfg.min_update != dd.min_update else "")]
+                 + (f"-min{dcfg.min_update:g}" if dcfg.min_update != dd.min_update else "")
+                 + (f"-spread{dcfg.bin_spread:g}" if dcfg.bin_spread != dd.bin_spread else "")]
     else:
         parts = [source if source != "mono" else f"mono-keep{keep:g}"]
     if source == "mono" and model:
