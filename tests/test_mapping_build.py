@@ -186,6 +186,12 @@ class BadPredictor:
     (["--source", "radar"], "--source"),
     (["--model", "/nonexistent/model.pt"], "model.pt"),
     (["--res", "-1"], "--res"),
+    (["--integrate", "distribution", "--eps", "0"], "--eps"),
+    (["--integrate", "distribution", "--eps", "1.5"], "--eps"),
+    (["--integrate", "distribution", "--temperature", "-1"], "--temperature"),
+    (["--integrate", "distribution", "--ray-step", "0"], "--ray-step"),
+    (["--integrate", "distribution", "--min-update", "0.5"], "--min-update"),
+    (["--integrate", "distribution", "--bin-spread", "0"], "--bin-spread"),
 ])
 def test_cli_bad_inputs_write_nothing(tiny_root, tmp_path, capsys, argv, message):
     out = tmp_path / "maps"
