@@ -79,9 +79,9 @@ def run_table(args) -> int:
     calibrated = CALIBRATED if extended else ()
     gt_bt = None
     if extended and seq.depth(frames[0]) is not None:  # synthetic: the camera ground-truth map (upper bound, surfaces)
-        gt_stem = map_stem("depth-gt", 1.0, cfg, tag, args.stride, None)
+        gt_stem = map_stem("depth-gt", 1.0, cfg, tag, 1, None)      # every pixel: the true surfaces, dense
         gt_bt, gt_stats = _cached(out_dir, gt_stem, lambda: build_and_write(
-            seq, "depth-gt", 1.0, cfg, frames, args.stride, None, out_dir))
+            seq, "depth-gt", 1.0, cfg, frames, 1, None, out_dir))
         entries.append(("camera ground truth (depth-gt)", "depth-gt", None, gt_bt, gt_stats))
     for keep in sorted(keeps, reverse=True):
         label = "mono (keep 1.0)" if keep == 1.0 else f"mono keep {keep:g}"
