@@ -381,3 +381,38 @@ def test_p_beyond_is_mass_beyond_every_cell_and_probs_are_conditional():
     diff = np.array([got_cells[c] - sure_cells[c] for c in common])
     assert np.median(diff) <= 0 and diff.sum() < 0
     assert sum(v > 0 for v in got_cells.values()) < sum(v > 0 for v in sure_cells.values())
+
+
+@pytest.mark.parametrize("integrate", ["keep", "distribution"])
+def test_probability_colouring_observers_get_updated_cells(tiny_root, integrate):
+    """With an observer colouring by probability, every frame's update carries the cells it updated with
+    the probability the final tree holds for them (last frame); without one, none are computed."""
+    from mono_map.data.kitti import open_sequence
+    from mono_map.mapping.build import build_map
+    from mono_map.mapping.oracle import NoisyGroundTruthPredictor
+
+    class Recorder(list):
+        def __init__(self, colour):
+            super().__init__()
+            self.colour = colour
+
+        def __call__(self, update):
+            self.append(update)
+
+    seq = open_sequence(tiny_root, "tiny")
+    prob, height = Recorder("probability"), Recorder("height")
+    res = build_map(seq, "mono", 1.0, frames=range(0, 2), stride=2, integrate=integrate,
+                    predictor=NoisyGroundTruthPredictor(sigma=0.01, edge_sigma=0.0), observers=[prob, height],
+                    show_progress=False)
+    last = prob[-1]
+    assert len(last.updated_cells) == len(last.updated_probability) > 100
+    assert ((last.updated_probability > 0.5) & (last.updated_probability < 1)).all()   # the occupied ones
+    rng = np.random.default_rng(0)
+    for j in rng.choice(len(last.updated_cells), 50, replace=False):
+        node = res.tree.search(last.updated_cells[j])
+        assert abs(node.getOccupancy() - last.updated_probability[j]) < 1e-5
+    assert height[-1] is last                                       # one update object for every observer
+    alone = Recorder("height")
+    build_map(seq, "mono", 1.0, frames=range(0, 1), stride=2, integrate=integrate, observers=[alone],
+              predictor=NoisyGroundTruthPredictor(sigma=0.01, edge_sigma=0.0), show_progress=False)
+    assert alone[0].updated_cells is None and alone[0].updated_probability is None

@@ -51,6 +51,23 @@ class FrameUpdate:
     occupied_keys_changed: np.ndarray  # (M, 3) centres of cells that became occupied this frame
     freed_keys_changed: np.ndarray     # (F, 3) centres of cells that stopped being occupied this frame
     stats: dict = field(default_factory=dict)
+    # only when an observer colours by probability (``colour == "probability"``): centres of the cells
+    # this frame updated that are occupied after it (M, 3) and their occupancy probability (M,) float32
+    updated_cells: np.ndarray | None = None
+    updated_probability: np.ndarray | None = None
+
+
+def updated_cell_probabilities(integrator: MapIntegrator, res) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (M, 3) metres, occupancy probabilities (M,) float32) of the cells a frame updated
+    (``res``: its FrameIntegration) that are occupied after it, read from the integrator's log-odds
+    mirror (cells that stopped being occupied are ``freed_keys_changed``)."""
+    from mono_map.mapping.raycast import key_to_coord
+
+    keys = np.concatenate([res.keys.free, res.keys.occupied]).astype(np.int64)
+    logodds = integrator.mirror.get(keys)
+    occ = logodds > integrator.occ_thres
+    prob = 1.0 / (1.0 + np.exp(-logodds[occ].astype(np.float64)))
+    return key_to_coord(keys[occ], integrator.cfg.resolution), prob.astype(np.float32)
 
 
 @dataclass
@@ -257,6 +274,9 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
                                   points_world=pts, origin=origin,
                                   occupied_keys_changed=res.became_occupied,
                                   freed_keys_changed=res.stopped_occupied, stats=dict(fstats))
+                if integrator.mirror is not None and any(getattr(o, "colour", None) == "probability"
+                                                         for o in observers):
+                    upd.updated_cells, upd.updated_probability = updated_cell_probabilities(integrator, res)
                 for obs in observers:
                     obs(upd)
     finally:
