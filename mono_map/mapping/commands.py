@@ -265,14 +265,15 @@ def default_map_path(args, cfg, dcfg, selection) -> Path:
     out_dir = sequence_output_dir(args.out, args.seq)
     path = out_dir / (map_stem("mono", args.keep, cfg, frames_tag(frames), args.stride, args.model, args.integrate,
                                dcfg) + ".bt")
+    how = f"--keep {args.keep:g}" if args.integrate == "keep" else "--integrate distribution"
     if not path.is_file():
         raise MonoMapError(f"--map: none given, and {path} does not exist yet "
-                           f"(build it: mono-map build --seq {args.seq} --keep {args.keep:g}, or pass --map)")
+                           f"(build it: mono-map build --seq {args.seq} {how}, or pass --map)")
     ok, why = reusable(path, job_key(seq, "mono", args.keep, cfg, frames, args.stride, args.model,
                                      integrate=args.integrate, dcfg=dcfg))
     if not ok:
         raise MonoMapError(f"--map: none given, and {path} is stale ({why}); rebuild it with mono-map build "
-                           f"--seq {args.seq} --keep {args.keep:g}, or pass --map")
+                           f"--seq {args.seq} {how}, or pass --map")
     print(f"scoring {path}")
     return path
 
