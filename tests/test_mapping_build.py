@@ -192,6 +192,19 @@ def test_cli_bad_inputs_write_nothing(tiny_root, tmp_path, capsys, argv, message
     assert not out.exists() or not any(out.iterdir())
 
 
+def test_cli_depth_gt_without_ground_truth_is_one_line(tiny_root, tmp_path, capsys, monkeypatch):
+    """--source depth-gt on a sequence without depth_2 (real KITTI): one line naming it, nothing written."""
+    from mono_map.data.kitti import KittiSequence
+
+    monkeypatch.setattr(KittiSequence, "depth", lambda self, i: None)
+    out = tmp_path / "maps"
+    rc = cli_main(["build", "--seq", "tiny", "--data-root", str(tiny_root), "--frames", "0:2", "--out", str(out),
+                   "--source", "depth-gt"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "depth_2" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() or not any(out.iterdir())
+
+
 @pytest.mark.parametrize("kind, message", [("nan", "NaN"), ("empty", "empty frame")])
 def test_bad_predictions(tiny_root, kind, message):
     seq = open_sequence(tiny_root, "tiny")

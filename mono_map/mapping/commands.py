@@ -180,6 +180,9 @@ def run_build(args) -> int:
     # then the data
     seq = prepare_sequence(args.data_root, args.seq, selection)
     frames = selection.resolve(len(seq))
+    if args.source == "depth-gt" and seq.depth(frames[0]) is None:
+        raise MonoMapError(f"--source depth-gt: {seq.path / 'depth_2'} has no ground-truth depth for frame "
+                           f"{frames[0]} (a synthetic sequence has it)")
     check_memory(seq, frames, args.source, cfg, args.stride, args.keep, args.integrate, dcfg)
     how = ""
     if args.source == "mono":
