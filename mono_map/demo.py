@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     # 3. the vanilla monocular map and the table (maps built by the same job are reused)
     print("[3/3] monocular map, keep 1.0, and the mapping table", flush=True)
     run_table(TableJob(seq=args.seq, data_root=args.data_root, frames=selection, out=str(out_dir),
-                       keeps=(0.8, 1.0), stride=1, model=None, octomap=cfg))
+                       keeps=(0.8, 1.0), stride=1, model=None, octomap=cfg, paper_only=True))
     print(f"recording: {rrd}  (open it with: mono-map view {rrd})")
     print(f"demo finished in {time.perf_counter() - t0:.0f} s")
     return 0

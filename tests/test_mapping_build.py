@@ -176,6 +176,12 @@ class BadPredictor:
     (["--source", "radar"], "--source"),
     (["--model", "/nonexistent/model.pt"], "model.pt"),
     (["--res", "-1"], "--res"),
+    (["--integrate", "distribution", "--eps", "0"], "--eps"),
+    (["--integrate", "distribution", "--eps", "1.5"], "--eps"),
+    (["--integrate", "distribution", "--temperature", "-1"], "--temperature"),
+    (["--integrate", "distribution", "--ray-step", "0"], "--ray-step"),
+    (["--integrate", "distribution", "--min-update", "0.5"], "--min-update"),
+    (["--integrate", "distribution", "--bin-spread", "0"], "--bin-spread"),
 ])
 def test_cli_bad_inputs_write_nothing(tiny_root, tmp_path, capsys, argv, message):
     out = tmp_path / "maps"
@@ -183,6 +189,19 @@ def test_cli_bad_inputs_write_nothing(tiny_root, tmp_path, capsys, argv, message
     assert rc == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_cli_depth_gt_without_ground_truth_is_one_line(tiny_root, tmp_path, capsys, monkeypatch):
+    """--source depth-gt on a sequence without depth_2 (real KITTI): one line naming it, nothing written."""
+    from mono_map.data.kitti import KittiSequence
+
+    monkeypatch.setattr(KittiSequence, "depth", lambda self, i: None)
+    out = tmp_path / "maps"
+    rc = cli_main(["build", "--seq", "tiny", "--data-root", str(tiny_root), "--frames", "0:2", "--out", str(out),
+                   "--source", "depth-gt"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "depth_2" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not out.exists() or not any(out.iterdir())
 
 
@@ -214,16 +233,20 @@ def test_cli_table_and_sweep(tiny_root, tmp_path, capsys):
     assert "| mono keep 0.8 |" in text and "| mono (keep 1.0) |" in text and "| mono keep 0.5 |" in text
     stem = "table_f0-3_res0.2_model-oracle"
     rows = json.loads((out / f"{stem}.json").read_text())["rows"]
-    assert [r["method"] for r in rows] == ["LiDAR-FOV", "mono (keep 1.0)", "mono keep 0.8", "mono keep 0.5"]
+    assert [r["method"] for r in rows] == ["LiDAR-FOV", "camera ground truth (depth-gt)", "mono (keep 1.0)",
+                                           "mono keep 0.8", "mono keep 0.5", "mono, distribution"]
     assert rows[0]["accuracy"] == 1.0 and rows[0]["coverage"] == 1.0
-    kept = [r["points_kept"] for r in rows[1:]]
+    kept = [r["points_kept"] for r in rows[2:5]]
     assert kept[0] > kept[1] > kept[2] > 0  # keep 1.0 > 0.8 > 0.5
     for r in rows[1:]:
         assert 0 < r["accuracy"] <= r["accuracy_covered"] <= 1 and r["memory_mb"] > 0
-    for suffix in (".md", "_sweep.png", "_topdown.png"):
+        assert 0 < r["surface_precision"] <= 1
+    assert rows[1]["surface_precision"] == 1.0                  # depth-gt is its own surface
+    assert [r["ece"] is not None for r in rows] == [False, False, True, True, False, True]
+    for suffix in (".md", "_sweep.png", "_topdown.png", "_acc_memory.png", "_reliability.png"):
         assert (out / f"{stem}{suffix}").stat().st_size > 0
     n_bt = len(list(out.glob("*.bt")))
-    assert n_bt == 4
+    assert n_bt == 6 and len(list(out.glob("*.ot"))) == 3
 
     assert cli_main(common + ["--reference", "lidar"]) == 0
     capsys.readouterr()
@@ -232,6 +255,14 @@ def test_cli_table_and_sweep(tiny_root, tmp_path, capsys):
     fov = table["rows"][0]
     assert fov["method"] == "LiDAR-FOV" and fov["coverage"] < 1.0 and 0 < fov["accuracy"] < 1.0
     assert len(list(out.glob("*.bt"))) == n_bt + 1  # only the whole-LiDAR map was added; the rest reused
+
+    # the job key carries the integration: another --eps is another distribution map, the rest is reused
+    dist = json.loads(next(out.glob("mono-dist_*.json")).read_text())["job"]
+    assert dist["integration"]["mode"] == "distribution" and dist["keep"] is None
+    assert dist["integration"]["distribution"]["eps"] == 0.2
+    assert cli_main(common + ["--eps", "0.3"]) == 0
+    assert "rebuilding" not in capsys.readouterr().out
+    assert len(list(out.glob("*.bt"))) == n_bt + 2 and len(list(out.glob("mono-dist-eps0.3_*.ot"))) == 1
 
     assert cli_main(common + ["--reference", "radar"]) == 2
     assert "--reference" in capsys.readouterr().err

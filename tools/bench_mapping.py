@@ -4,6 +4,12 @@ batched exact path vs OctoMap's C++ graph2tree (Debian octomap-tools), in one ru
 
     .venv/bin/python tools/bench_mapping.py --seq 00 --source lidar --frames 0:30
     .venv/bin/python tools/bench_mapping.py --seq 00 --source mono --model oracle --frames 0:10
+    .venv/bin/python tools/bench_mapping.py --seq 00 --integrate --model shipped --frames 0:10 --repeat 3
+
+With --integrate: ``--integrate keep`` (keep --keep) against ``--integrate distribution`` on the
+same predicted frames, back to back, --repeat times: the map update alone (from the prediction to
+the synced octree) and the whole build (``build_map``, prediction included); min / median / max
+and the frames/s ratio distribution / keep.
 
 All scans are loaded (and, for mono, predicted/selected/back-projected) first; only integration is
 timed. Every method runs with discretize=True (graph2tree: -discretize) and OctoMap's defaults.
@@ -31,6 +37,7 @@ from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.prepare import prepare_sequence  # noqa: E402
 from mono_map.eval.map_metrics import tree_leaves  # noqa: E402
 from mono_map.frames import first_frames, parse_frames  # noqa: E402
+from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.integrate import MapIntegrator  # noqa: E402
 from mono_map.mapping.points import camera_origin, pixels_to_world  # noqa: E402
 from mono_map.mapping.reference import lidar_measurement  # noqa: E402
@@ -92,6 +99,60 @@ def agreement(a, b) -> dict:
             "leaves_a": a.getNumLeafNodes(), "leaves_b": b.getNumLeafNodes()}
 
 
+def bench_integrations(args) -> int:
+    """--integrate: keep vs distribution, back to back, on the same frames (see the module docstring)."""
+    import statistics
+
+    from mono_map.mapping.build import bin_edges, build_map, distribution_frame, load_predictor, run_predictor
+
+    selection = parse_frames(args.frames, default=first_frames(500))
+    seq = prepare_sequence(args.data_root, args.seq, selection)
+    frames = selection.resolve(len(seq))
+    desc = selection.describe(frames)
+    predictor = load_predictor(None if args.model == "shipped" else args.model)
+    dcfg = DistributionConfig(eps=args.eps, min_update=args.min_update, ray_step=args.ray_step)
+    cfg = OctoMapConfig(resolution=args.res)
+    edges = bin_edges(predictor)
+    print(f"sequence {args.seq}, {desc}, model {args.model}, keep {args.keep} vs distribution {dcfg}")
+    preds = [(i, run_predictor(predictor, seq, i, seq.image(i), with_probs=True)) for i in frames]
+    K = seq.calib.K2
+
+    def keep_maps():
+        integ = MapIntegrator(cfg)
+        for i, p in preds:
+            T = seq.T_world_cam2(i)
+            mask = select_pixels(p.depth, p.entropy, args.keep, 1.0, 80.0, stride=args.stride, p_beyond=p.p_beyond)
+            integ.insert(pixels_to_world(p.depth, mask, K, T), camera_origin(T))
+        integ.sync()
+
+    def dist_maps():
+        integ = MapIntegrator(cfg)
+        for i, p in preds:
+            _, valid = select_pixels(p.depth, p.entropy, 1.0, 1.0, 80.0, stride=args.stride, return_valid=True)
+            distribution_frame(integ, p, valid, K, seq.T_world_cam2(i), edges, dcfg, i)
+        integ.sync()
+
+    def builds(integrate):
+        return lambda: build_map(seq, "mono", args.keep, frames=frames, octomap=cfg, stride=args.stride,
+                                 predictor=predictor, integrate=integrate, distribution=dcfg, show_progress=False)
+
+    for what, keep_fn, dist_fn in (("map update", keep_maps, dist_maps),
+                                   ("whole build", builds("keep"), builds("distribution"))):
+        times = {"keep": [], "distribution": []}
+        for _ in range(args.repeat):
+            for name, fn in (("keep", keep_fn), ("distribution", dist_fn)):
+                t0 = time.perf_counter()
+                fn()
+                times[name].append(time.perf_counter() - t0)
+        fps = {k: [len(frames) / t for t in v] for k, v in times.items()}
+        ratios = [d / k for k, d in zip(fps["keep"], fps["distribution"])]
+        for name, v in fps.items():
+            print(f"{what:12s} {name:13s} frames/s min {min(v):.2f} median {statistics.median(v):.2f} max {max(v):.2f}")
+        print(f"{what:12s} distribution / keep frames/s: min {min(ratios):.2f} median {statistics.median(ratios):.2f} "
+              f"max {max(ratios):.2f}  ({args.repeat} back-to-back pairs)")
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seq", default="00")
@@ -103,7 +164,15 @@ def main(argv=None) -> int:
     p.add_argument("--model", default="oracle", help="mono only: checkpoint or 'oracle' (noisy ground truth)")
     p.add_argument("--res", type=float, default=0.2)
     p.add_argument("--numpy", action="store_true", help="also time the numpy DDA (no compiled kernel)")
+    p.add_argument("--integrate", action="store_true", help="keep vs distribution integration (see above)")
+    p.add_argument("--repeat", type=int, default=3)
+    d = DistributionConfig()
+    p.add_argument("--eps", type=float, default=d.eps)
+    p.add_argument("--min-update", type=float, default=d.min_update)
+    p.add_argument("--ray-step", type=int, default=d.ray_step)
     args = p.parse_args(argv)
+    if args.integrate:
+        return bench_integrations(args)
     cfg = OctoMapConfig(resolution=args.res)
 
     scans = load_scans(args)

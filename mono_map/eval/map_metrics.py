@@ -26,6 +26,7 @@ import numpy as np
 
 from mono_map.errors import MonoMapError
 from mono_map.mapping.raycast import TREE_MAX_VAL, _spread_bits
+from mono_map.mapping.raycast import sorted_unique
 
 TREE_DEPTH = 16
 
@@ -136,7 +137,7 @@ def compare_leaves(map_leaves: Leaves, ref_leaves: Leaves) -> dict:
     if not np.isclose(map_leaves.resolution, ref_leaves.resolution):
         raise MonoMapError(f"map resolution {map_leaves.resolution} m differs from the reference's "
                            f"{ref_leaves.resolution} m: cell grids do not coincide")
-    bounds = np.unique(np.concatenate([map_leaves.start, map_leaves.start + map_leaves.length,
+    bounds = sorted_unique(np.concatenate([map_leaves.start, map_leaves.start + map_leaves.length,
                                        ref_leaves.start, ref_leaves.start + ref_leaves.length]))
     seg_start, seg_len = bounds[:-1], np.diff(bounds)
     m = _state_at(map_leaves, seg_start)
@@ -183,3 +184,92 @@ def evaluate_map(map_tree, ref_tree) -> dict:
     out["map"] = tree_summary(map_tree)
     out["reference"] = tree_summary(ref_tree)
     return out
+
+
+def _compact_bits(x: np.ndarray) -> np.ndarray:
+    """Inverse of ``_spread_bits``: every third bit of x, packed (for Morton decoding)."""
+    x = x.astype(np.uint64) & np.uint64(0x1249249249249249)
+    for shift, mask in ((2, 0x10C30C30C30C30C3), (4, 0x100F00F00F00F00F), (8, 0x1F0000FF0000FF),
+                        (16, 0x1F00000000FFFF), (32, 0x1FFFFF)):
+        x = (x | (x >> np.uint64(shift))) & np.uint64(mask)
+    return x.astype(np.int64)
+
+
+def morton_to_keys(codes: np.ndarray) -> np.ndarray:
+    """(N, 3) int64 keys of Morton codes (inverse of :func:`morton_codes`)."""
+    c = np.asarray(codes, dtype=np.int64).astype(np.uint64)
+    return np.stack([_compact_bits(c >> np.uint64(2)), _compact_bits(c >> np.uint64(1)), _compact_bits(c)], axis=1)
+
+
+def occupied_keys(leaves: Leaves) -> np.ndarray:
+    """Keys ((N, 3) int64) of every finest cell inside an occupied leaf."""
+    occ = Leaves(leaves.start[leaves.occupied], leaves.length[leaves.occupied], leaves.occupied[leaves.occupied],
+                 leaves.resolution)
+    codes, _ = occ.expand()
+    return morton_to_keys(codes)
+
+
+def _pack(keys: np.ndarray) -> np.ndarray:
+    return (keys[:, 0] << 34) | (keys[:, 1] << 17) | keys[:, 2]
+
+
+def surface_precision(map_leaves: Leaves, surface_leaves: Leaves) -> dict:
+    """Share of the map's occupied finest cells within one cell (26-neighbourhood) of an occupied cell of
+    ``surface_leaves`` (the camera ground-truth ``depth-gt`` map): how much of what the map calls a
+    surface lies on a true one. Volume-weighted like the other metrics."""
+    if not np.isclose(map_leaves.resolution, surface_leaves.resolution):
+        raise MonoMapError(f"map resolution {map_leaves.resolution} m differs from the surface map's "
+                           f"{surface_leaves.resolution} m")
+    mk = occupied_keys(map_leaves)
+    truth = np.sort(_pack(occupied_keys(surface_leaves) + 1))       # +1: neighbours of key 0 stay >= 0
+    near = np.zeros(len(mk), dtype=bool)
+    if len(truth):
+        for off in np.stack(np.meshgrid([0, 1, 2], [0, 1, 2], [0, 1, 2], indexing="ij"), -1).reshape(-1, 3):
+            q = _pack(mk + off)
+            i = np.clip(np.searchsorted(truth, q), 0, len(truth) - 1)
+            near |= truth[i] == q
+    return {"surface_precision": float(near.mean()) if len(mk) else 0.0, "occupied_cells": int(len(mk)),
+            "surface_cells": int(len(truth)), "on_surface_cells": int(near.sum())}
+
+
+def _value_at(leaves: Leaves, points: np.ndarray) -> np.ndarray:
+    """Log-odds at Morton codes ``points`` (NaN where unknown)."""
+    out = np.full(len(points), np.nan)
+    if not len(leaves.start):
+        return out
+    idx = np.searchsorted(leaves.start, points, side="right") - 1
+    idx_c = np.clip(idx, 0, None)
+    inside = (idx >= 0) & (points < leaves.start[idx_c] + leaves.length[idx_c])
+    out[inside] = leaves.value[idx_c[inside]]
+    return out
+
+
+def calibration(map_leaves: Leaves, ref_leaves: Leaves, n_bins: int = 10) -> dict:
+    """Reliability of a probabilistic map against a reference's states, over the cells both know
+    (volume-weighted): the map's occupancy probabilities sigmoid(log-odds) in ``n_bins`` equal bins of
+    [0, 1]; per bin the mean probability (confidence), the share of cells the reference has occupied
+    (frequency) and the weight; ``ece`` = Σ weight·|frequency − confidence|. Needs the map's real
+    log-odds (a ``.ot`` tree: ``.bt`` keeps only max-likelihood states)."""
+    if not np.isclose(map_leaves.resolution, ref_leaves.resolution):
+        raise MonoMapError(f"map resolution {map_leaves.resolution} m differs from the reference's "
+                           f"{ref_leaves.resolution} m: cell grids do not coincide")
+    bounds = sorted_unique(np.concatenate([map_leaves.start, map_leaves.start + map_leaves.length,
+                                       ref_leaves.start, ref_leaves.start + ref_leaves.length]))
+    seg, w = bounds[:-1], np.diff(bounds).astype(np.float64)
+    value = _value_at(map_leaves, seg)
+    ref = _state_at(ref_leaves, seg)
+    both = ~np.isnan(value) & (ref >= 0)
+    p = 1.0 / (1.0 + np.exp(-value[both]))
+    occ = (ref[both] == 1).astype(np.float64)
+    w = w[both]
+    b = np.clip((p * n_bins).astype(np.int64), 0, n_bins - 1)
+    weight = np.bincount(b, weights=w, minlength=n_bins)
+    conf = np.bincount(b, weights=w * p, minlength=n_bins)
+    freq = np.bincount(b, weights=w * occ, minlength=n_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        conf, freq = conf / weight, freq / weight
+    total = weight.sum()
+    share = weight / total if total else weight
+    ece = float(np.nansum(share * np.abs(freq - conf)))
+    return {"ece": ece, "bin_edges": np.linspace(0, 1, n_bins + 1).tolist(), "confidence": conf.tolist(),
+            "frequency": freq.tolist(), "weight": share.tolist(), "cells": int(total)}

@@ -5,7 +5,11 @@ depth and entropy, keep the ``keep`` fraction of valid pixels with the lowest en
 them with K2 and the pose ``T_world_cam2``, and integrate them into the OctoMap with the camera
 centre as sensor origin (free cells along the rays, occupied at the end points). LiDAR sources use
 the velodyne scans (``lidar-fov``: only points inside image_2's view) with the velodyne centre as
-origin. Integration is the exact batched path of :mod:`mono_map.mapping.integrate`.
+origin; ``depth-gt`` back-projects the synthetic ground-truth ``depth_2`` through the camera path
+(every pixel within the bin range, as keep 1.0: the camera's upper bound). Integration is the exact
+batched path of :mod:`mono_map.mapping.integrate`; with ``integrate="distribution"`` every valid
+pixel's whole depth distribution sets the updates along its ray instead
+(:mod:`mono_map.mapping.distribution`).
 """
 
 from __future__ import annotations
@@ -19,12 +23,15 @@ import numpy as np
 from mono_map.config import OctoMapConfig
 from mono_map.depth.bins import DepthBins
 from mono_map.errors import MonoMapError
+from mono_map.mapping.distribution import (INTEGRATIONS, DistributionConfig, apply_temperature,
+                                           check_distribution_config, distribution_update, far_depth,
+                                           narrow_bins)
 from mono_map.mapping.integrate import MapIntegrator
-from mono_map.mapping.points import camera_origin, pixels_to_world
+from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
 from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
-from mono_map.mapping.select import check_keep, select_pixels
+from mono_map.mapping.select import check_keep, select_pixels, valid_pixels
 
-SOURCES = ("mono",) + LIDAR_SOURCES
+SOURCES = ("mono", "depth-gt") + LIDAR_SOURCES
 
 
 @dataclass
@@ -44,6 +51,23 @@ class FrameUpdate:
     occupied_keys_changed: np.ndarray  # (M, 3) centres of cells that became occupied this frame
     freed_keys_changed: np.ndarray     # (F, 3) centres of cells that stopped being occupied this frame
     stats: dict = field(default_factory=dict)
+    # only when an observer colours by probability (``colour == "probability"``): centres of the cells
+    # this frame updated that are occupied after it (M, 3) and their occupancy probability (M,) float32
+    updated_cells: np.ndarray | None = None
+    updated_probability: np.ndarray | None = None
+
+
+def updated_cell_probabilities(integrator: MapIntegrator, res) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (M, 3) metres, occupancy probabilities (M,) float32) of the cells a frame updated
+    (``res``: its FrameIntegration) that are occupied after it, read from the integrator's log-odds
+    mirror (cells that stopped being occupied are ``freed_keys_changed``)."""
+    from mono_map.mapping.raycast import key_to_coord
+
+    keys = np.concatenate([res.keys.free, res.keys.occupied]).astype(np.int64)
+    logodds = integrator.mirror.get(keys)
+    occ = logodds > integrator.occ_thres
+    prob = 1.0 / (1.0 + np.exp(-logodds[occ].astype(np.float64)))
+    return key_to_coord(keys[occ], integrator.cfg.resolution), prob.astype(np.float32)
 
 
 @dataclass
@@ -76,23 +100,67 @@ def load_predictor(model: str | None = None):
     return DepthPredictor.load(model, fast=True, precision=default_precision())
 
 
-def _predict(predictor, seq, i: int, image: np.ndarray):
+def run_predictor(predictor, seq, i: int, image: np.ndarray, with_probs: bool = False):
     """Predictors with ``predict_frame(seq, i, image)`` (e.g. the ground-truth oracle) get the frame;
-    others the image (``DepthPredictor.predict``)."""
+    others the image (``DepthPredictor.predict``). with_probs: also the K×H×W bin probabilities."""
+    kw = {"with_probs": True} if with_probs else {}
     if hasattr(predictor, "predict_frame"):
-        return predictor.predict_frame(seq, i, image)
-    return predictor.predict(image)
+        return predictor.predict_frame(seq, i, image, **kw)
+    return predictor.predict(image, **kw)
+
+
+def bin_edges(predictor) -> np.ndarray:
+    """(K+1,) depth-bin edges (metres) of a predictor (DepthBins' defaults if it has none)."""
+    b = getattr(predictor, "bins", None) or DepthBins()
+    return DepthBins(b.num_bins, b.min_depth, b.max_depth).edges
+
+
+def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np.ndarray, T_world_cam2: np.ndarray,
+                       edges: np.ndarray, dcfg: DistributionConfig, frame: int):
+    """Integrate the valid pixels' distributions of one prediction (``probs`` K×H×W, conditional on a
+    surface within range as DepthPrediction's; optional ``p_beyond`` H×W, the probability of no surface
+    within range). Each pixel's unconditional bin mass is (1 − p_beyond) · probs and p_beyond is mass
+    beyond every cell; pixels with nothing within range (p_beyond > 1 − eps) are skipped.
+    Returns (FrameIntegration, number of rays)."""
+    if pred.probs is None:
+        raise MonoMapError(f"frame {frame}: the predictor gave no bin probabilities (--integrate distribution "
+                           f"needs a distribution head: binary, softmax, ordinal, gaussian or a dropout variant)")
+    probs = np.asarray(pred.probs)
+    if probs.ndim != 3 or probs.shape[1:] != valid.shape or probs.shape[0] != len(edges) - 1:
+        raise MonoMapError(f"frame {frame}: bin probabilities are {probs.shape}, expected "
+                           f"({len(edges) - 1}, {valid.shape[0]}, {valid.shape[1]})")
+    pb_img = getattr(pred, "p_beyond", None)
+    if pb_img is not None:
+        valid = valid & ~(np.asarray(pb_img) > 1.0 - dcfg.eps)
+    s = dcfg.ray_step
+    sub = valid[::s, ::s]
+    v, u = np.nonzero(sub)
+    p = apply_temperature(np.moveaxis(probs[:, ::s, ::s], 0, -1)[sub], dcfg.temperature)   # (N, K) rows
+    v, u = v * s, u * s
+    pb = np.zeros(len(v)) if pb_img is None else np.clip(np.asarray(pb_img, dtype=np.float64)[v, u], 0.0, 1.0)
+    p = (np.asarray(p, dtype=np.float64) * (1.0 - pb)[:, None]).astype(np.float32)   # unconditional bin mass
+    if dcfg.bin_spread < 1.0:
+        p, edges = narrow_bins(p, edges, dcfg.bin_spread)
+    fd = far_depth(p, pb, edges, dcfg.eps)
+    upd = distribution_update(camera_origin(T_world_cam2), pixel_points_to_world(u, v, fd, K, T_world_cam2), fd,
+                              p, pb, edges, integrator.cfg.resolution, integrator.hit, integrator.miss,
+                              integrator.cfg.max_range, dcfg.min_update)
+    return integrator.insert_updates(upd), int(len(v))
 
 
 def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[int] | None = None,
               octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None,
               model: str | None = None, depth_range: tuple[float, float] | None = None,
               observers: Sequence[Callable] = (), stats_every: int = 100, method: str = "batched",
-              show_progress: bool = True) -> BuildResult:
+              show_progress: bool = True, integrate: str = "keep",
+              distribution: DistributionConfig | None = None) -> BuildResult:
     """Integrate ``frames`` of ``seq`` into a new OctoMap.
 
-    source: "mono" (depth predictor, ``keep`` lowest-entropy fraction of valid pixels), "lidar" or
-    "lidar-fov" (``keep`` and the predictor are ignored). predictor: anything with
+    source: "mono" (depth predictor, ``keep`` lowest-entropy fraction of valid pixels), "depth-gt"
+    (ground-truth depth_2, every pixel in the bin range), "lidar" or "lidar-fov" (``keep`` and the
+    predictor are ignored). integrate (mono only): "keep" (the paper: kept pixels' expected depths
+    as end points) or "distribution" (every valid pixel's distribution, ``distribution`` settings;
+    ``keep`` is ignored). predictor: anything with
     ``predict(image) -> DepthPrediction`` or ``predict_frame(seq, i, image)``; if None,
     ``load_predictor(model)`` (None → the shipped checkpoint). depth_range: valid predicted
     depths (metres), default the predictor's bin range (else DepthBins' 1–80 m).
@@ -106,7 +174,13 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
     stride = int(stride)
     if stride < 1:
         raise MonoMapError(f"--stride: must be a positive integer, got {stride}")
-    if source == "mono":
+    if integrate not in INTEGRATIONS:
+        raise MonoMapError(f"--integrate: unknown integration {integrate!r} (choose from {', '.join(INTEGRATIONS)})")
+    dist_mode = source == "mono" and integrate == "distribution"
+    dcfg = check_distribution_config(distribution or DistributionConfig())
+    if dist_mode and method != "batched":
+        raise MonoMapError("--integrate distribution: needs the batched integration method")
+    if source == "mono" and not dist_mode:
         keep = check_keep(keep)
     frames = list(range(len(seq))) if frames is None else list(frames)
     if not frames:
@@ -117,6 +191,7 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
         bins = getattr(predictor, "bins", None) or DepthBins()
         depth_range = (float(bins.min_depth), float(bins.max_depth))
     integrator = MapIntegrator(cfg, method=method)
+    edges = bin_edges(predictor) if dist_mode else None
     K = np.asarray(seq.calib.K2, dtype=np.float64)
     per_frame: list[dict] = []
     points_valid = points_kept = rays_cast = 0
@@ -134,7 +209,7 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
             image = depth = entropy = mask = None
             if source == "mono":
                 image = seq.image(i)
-                pred = _predict(predictor, seq, i, image)
+                pred = run_predictor(predictor, seq, i, image, with_probs=dist_mode)
                 depth = np.asarray(pred.depth, dtype=np.float32)
                 entropy = np.asarray(pred.entropy, dtype=np.float32)
                 if depth.shape != image.shape[:2] or entropy.shape != image.shape[:2]:
@@ -142,24 +217,46 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
                 if np.isnan(depth).any():
                     raise MonoMapError(f"frame {i}: predicted depth has {int(np.isnan(depth).sum())} NaN pixels "
                                        f"(model failure)")
-                mask, valid = select_pixels(depth, entropy, keep, *depth_range, stride=stride, return_valid=True,
-                                            p_beyond=getattr(pred, "p_beyond", None))
+                # distribution: every valid pixel, its p_beyond is mass beyond each cell (distribution_frame);
+                # keep: pixels more likely beyond range than not (sky) are never end points
+                mask, valid = select_pixels(depth, entropy, 1.0 if dist_mode else keep, *depth_range,
+                                            stride=stride, return_valid=True,
+                                            p_beyond=None if dist_mode else getattr(pred, "p_beyond", None))
                 n_valid = int(valid.sum())
                 if not mask.any():
                     raise MonoMapError(f"frame {i}: empty frame, no valid predicted depth within "
                                        f"[{depth_range[0]:g}, {depth_range[1]:g}] m")
+                origin = camera_origin(T_world_cam2)
+                mean_entropy = float(entropy[mask].mean())
+                if dist_mode:
+                    res, n_used = distribution_frame(integrator, pred, valid, K, T_world_cam2, edges, dcfg, i)
+                    pts = pixels_to_world(depth, mask, K, T_world_cam2) if observers else np.zeros((0, 3))
+                    kept_fraction = n_used / n_valid
+                else:
+                    pts = pixels_to_world(depth, mask, K, T_world_cam2)
+                    kept_fraction = float(mask.sum()) / n_valid
+            elif source == "depth-gt":
+                image = seq.image(i) if observers else None
+                depth = seq.depth(i)
+                if depth is None:
+                    raise MonoMapError(f"{seq.path / 'depth_2'}: no ground-truth depth for frame {i}; --source "
+                                       f"depth-gt needs a synthetic sequence")
+                mask = valid_pixels(depth, *depth_range, stride=stride)
+                if not mask.any():
+                    raise MonoMapError(f"frame {i}: empty frame, no ground-truth depth within "
+                                       f"[{depth_range[0]:g}, {depth_range[1]:g}] m")
                 pts = pixels_to_world(depth, mask, K, T_world_cam2)
                 origin = camera_origin(T_world_cam2)
-                kept_fraction = float(mask.sum()) / n_valid
-                mean_entropy = float(entropy[mask].mean())
+                kept_fraction, mean_entropy, n_valid = 1.0, float("nan"), int(mask.sum())
             else:
                 pts, origin = lidar_measurement(seq, i, source)
                 if len(pts) == 0:
                     raise MonoMapError(f"frame {i}: empty frame, the {source} scan has no points")
                 kept_fraction, mean_entropy, n_valid = 1.0, float("nan"), len(pts)
-            res = integrator.insert(pts, origin)
+            if not dist_mode:
+                res = integrator.insert(pts, origin)
             points_valid += n_valid
-            points_kept += len(pts)
+            points_kept += n_used if dist_mode else len(pts)
             rays_cast += res.keys.n_rays
             if n == 1 or n % stats_every == 0 or n == len(frames):  # first frame too: no zeros in the plots
                 last = integrator.stats()
@@ -167,7 +264,7 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
             fstats = {"index": int(i), "frames_per_s": n / elapsed if elapsed > 0 else 0.0,
                       "frame_s": time.perf_counter() - t_frame,
                       "memory_mb": last["memory_mb"], "leaf_count": last["leaf_count"],
-                      "kept_fraction": kept_fraction, "mean_entropy": mean_entropy, "n_points": int(len(pts)),
+                      "kept_fraction": kept_fraction, "mean_entropy": mean_entropy, "n_points": int(n_used if dist_mode else len(pts)),
                       "n_rays": int(res.keys.n_rays), "free_cells": int(len(res.keys.free)),
                       "occupied_cells": int(len(res.keys.occupied))}
             per_frame.append(fstats)
@@ -177,6 +274,9 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
                                   points_world=pts, origin=origin,
                                   occupied_keys_changed=res.became_occupied,
                                   freed_keys_changed=res.stopped_occupied, stats=dict(fstats))
+                if integrator.mirror is not None and any(getattr(o, "colour", None) == "probability"
+                                                         for o in observers):
+                    upd.updated_cells, upd.updated_probability = updated_cell_probabilities(integrator, res)
                 for obs in observers:
                     obs(upd)
     finally:
@@ -185,11 +285,13 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
     final = integrator.stats()
     wall = time.perf_counter() - t_start
     stats = {
-        "source": source, "keep": keep if source == "mono" else None, "sequence": getattr(seq, "name", None),
+        "source": source, "keep": keep if source == "mono" and not dist_mode else None,
+        "integrate": integrate if source == "mono" else None,
+        "eps": dcfg.eps if dist_mode else None, "temperature": dcfg.temperature if dist_mode else None, "sequence": getattr(seq, "name", None),
         "frames": [int(frames[0]), int(frames[-1]) + 1], "n_frames": len(frames), "stride": stride,
         "resolution": cfg.resolution, "prob_hit": cfg.prob_hit, "prob_miss": cfg.prob_miss,
         "clamp_min": cfg.clamp_min, "clamp_max": cfg.clamp_max, "max_range": cfg.max_range,
-        "depth_range": list(depth_range) if source == "mono" else None,
+        "depth_range": list(depth_range) if source in ("mono", "depth-gt") else None,
         "points_valid": int(points_valid), "points_kept": int(points_kept),
         "rays_cast": int(rays_cast),
         "leaf_count": final["leaf_count"], "tree_nodes": final["tree_nodes"],
@@ -207,4 +309,13 @@ def write_tree_bt(tree, path) -> None:
 
     with atomic_path(path, suffix=".bt") as tmp:
         if not tree.writeBinary(str(tmp).encode()):
+            raise MonoMapError(f"{path}: OctoMap could not write the tree")
+
+
+def write_tree_ot(tree, path) -> None:
+    """Write the probabilistic tree (.ot: every node's log-odds) atomically."""
+    from mono_map.io import atomic_path
+
+    with atomic_path(path, suffix=".ot") as tmp:
+        if not tree.write(str(tmp).encode()):
             raise MonoMapError(f"{path}: OctoMap could not write the tree")

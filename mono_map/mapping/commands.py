@@ -10,7 +10,7 @@ from mono_map.mapping.jobs import (RRD_MIN_FREE, build_and_write, check_memory, 
                                    model_digest, read_map_sidecar, reusable)
 from mono_map.paths import sequence_output_dir
 
-SOURCES = ("mono", "lidar", "lidar-fov")
+SOURCES = ("mono", "depth-gt", "lidar", "lidar-fov")
 
 
 def _add_octomap_args(p: argparse.ArgumentParser) -> None:
@@ -27,6 +27,37 @@ def _add_octomap_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--clamp-max", type=float, default=d.clamp_max, help=f"default {d.clamp_max}")
 
 
+def _add_integration_args(p: argparse.ArgumentParser) -> None:
+    from mono_map.mapping.distribution import DistributionConfig
+
+    d = DistributionConfig()
+    g = p.add_argument_group("integration of monocular depth")
+    g.add_argument("--integrate", default="keep", choices=("keep", "distribution"),
+                   help="keep: the paper's cut, the --keep lowest-entropy pixels' expected depths as end points "
+                        "(default); distribution: every valid pixel's whole depth distribution sets the expected "
+                        "OctoMap update of each cell along its ray (--keep ignored)")
+    g.add_argument("--eps", type=float, default=d.eps,
+                   help=f"distribution: rays stop where P(surface beyond) < eps (default {d.eps:g})")
+    g.add_argument("--temperature", type=float, default=d.temperature,
+                   help=f"distribution: probabilities p^(1/T), renormalised (default {d.temperature:g} = as predicted)")
+    g.add_argument("--min-update", type=float, default=d.min_update,
+                   help=f"distribution: drop per-cell updates weaker than this log-odds magnitude (default {d.min_update:g})")
+    g.add_argument("--bin-spread", type=float, default=d.bin_spread,
+                   help=f"distribution: spread each bin's mass over this central fraction of the bin, placed at the "
+                        f"pixel's local mean (default {d.bin_spread:g} = whole bins)")
+    g.add_argument("--ray-step", type=int, default=d.ray_step,
+                   help=f"distribution: one ray every N-th pixel row and column (default {d.ray_step})")
+
+
+def distribution_config(args):
+    """The ``--integrate distribution`` settings of the options, checked (MonoMapError naming the option)."""
+    from mono_map.mapping.distribution import DistributionConfig, check_distribution_config
+
+    return check_distribution_config(DistributionConfig(eps=args.eps, temperature=args.temperature,
+                                                        ray_step=args.ray_step, min_update=args.min_update,
+                                                        bin_spread=args.bin_spread))
+
+
 def register(subparsers) -> None:
     b = subparsers.add_parser(
         "build", help="build an OctoMap (.bt + stats JSON) from monocular depth or LiDAR",
@@ -35,7 +66,9 @@ def register(subparsers) -> None:
                     "(or use the LiDAR scans). Writes <out>/<name>.bt and <out>/<name>.json atomically.")
     b.add_argument("--seq", required=True, help="sequence name, e.g. 00")
     b.add_argument("--keep", type=float, default=0.8, help="fraction of valid pixels kept per frame, in (0, 1] (default 0.8)")
-    b.add_argument("--source", default="mono", help="mono | lidar | lidar-fov (default mono)")
+    b.add_argument("--source", default="mono", help="mono | depth-gt | lidar | lidar-fov (default mono); depth-gt: "
+                   "the synthetic ground-truth depth_2 back-projected like a keep-1.0 mono map (upper bound)")
+    _add_integration_args(b)
     _add_octomap_args(b)
     b.add_argument("--stride", type=int, default=1, help="use every S-th pixel row and column (default 1)")
     b.add_argument("--frames", default=None,
@@ -49,6 +82,7 @@ def register(subparsers) -> None:
     b.add_argument("--viewer", action="store_true", help="stream the build to a spawned rerun viewer")
     b.add_argument("--rrd", default=None, help="save a rerun recording to this file")
     b.add_argument("--reference-map", default=None, help="a .bt shown beside the build in the viewer")
+    b.add_argument("--ot", action="store_true", help="also write the probabilistic tree <name>.ot (for calibration)")
     b.set_defaults(func=run_build)
 
     e = subparsers.add_parser(
@@ -63,6 +97,9 @@ def register(subparsers) -> None:
                    "with --table: lidar-fov, or lidar (the whole 360° LiDAR map, LiDAR-FOV then a scored row)")
     e.add_argument("--seq", default="00", help="sequence for a built reference / the table (default 00)")
     e.add_argument("--table", action="store_true", help="build missing maps and print Table IV + keep sweep")
+    e.add_argument("--paper-only", action="store_true",
+                   help="with --table: only the paper's rows (LiDAR-FOV, keep sweep): no depth-gt, distribution "
+                        "map or calibration")
     e.add_argument("--keeps", default="0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0", help="keep sweep for --table")
     e.add_argument("--frames", default=None, help="frames for built maps (default: the first 500)")
     e.add_argument("--stride", type=int, default=1, help="pixel stride for built mono maps")
@@ -70,6 +107,7 @@ def register(subparsers) -> None:
     e.add_argument("--data-root", default=None)
     e.add_argument("--out", default=None, help="directory for cached maps and the table (default outputs/seq<SEQ>)")
     e.add_argument("--json", default=None, help="write the metrics JSON here")
+    _add_integration_args(e)
     _add_octomap_args(e)
     e.set_defaults(func=run_eval)
 
@@ -122,8 +160,10 @@ def run_build(args) -> int:
     # every option first: nothing is opened, rendered or written before they all pass
     if args.source not in BUILD_SOURCES:
         raise MonoMapError(f"--source: unknown source {args.source!r} (choose from {', '.join(BUILD_SOURCES)})")
+    dcfg = distribution_config(args)
     if args.source == "mono":
-        check_keep(args.keep)
+        if args.integrate == "keep":
+            check_keep(args.keep)
         checkpoint_path(args.model)
     if args.stride < 1:
         raise MonoMapError(f"--stride: must be a positive integer, got {args.stride}")
@@ -140,9 +180,16 @@ def run_build(args) -> int:
     # then the data
     seq = prepare_sequence(args.data_root, args.seq, selection)
     frames = selection.resolve(len(seq))
-    check_memory(seq, frames, args.source, cfg, args.stride, args.keep)
-    print(f"mono-map build: sequence {args.seq}, {selection.describe(frames)}, source {args.source}"
-          + (f", keep {args.keep:g}" if args.source == "mono" else "") + f", {cfg.resolution:g} m cells", flush=True)
+    if args.source == "depth-gt" and seq.depth(frames[0]) is None:
+        raise MonoMapError(f"--source depth-gt: {seq.path / 'depth_2'} has no ground-truth depth for frame "
+                           f"{frames[0]} (a synthetic sequence has it)")
+    check_memory(seq, frames, args.source, cfg, args.stride, args.keep, args.integrate, dcfg)
+    how = ""
+    if args.source == "mono":
+        how = (f", keep {args.keep:g}" if args.integrate == "keep" else
+               f", distribution integration (eps {dcfg.eps:g}, temperature {dcfg.temperature:g})")
+    print(f"mono-map build: sequence {args.seq}, {selection.describe(frames)}, source {args.source}{how}, "
+          f"{cfg.resolution:g} m cells", flush=True)
     logger = None
     observers = []
     if rrd is not None or args.viewer:
@@ -155,9 +202,10 @@ def run_build(args) -> int:
             observers.append(logger())
     bt, stats = build_and_write(seq, args.source, args.keep, cfg, frames, args.stride, args.model, out_dir,
                                 name=args.name, observers=observers, predictor=predictor, rrd=rrd,
-                                logger=logger, digest=digest)
+                                logger=logger, digest=digest, integrate=args.integrate, dcfg=dcfg,
+                                write_ot=args.ot)
     print(f"wrote {bt} ({stats['bt_bytes'] / 2**20:.1f} MB on disk) and {bt.with_suffix('.json')}"
-          + (f" and {rrd}" if rrd is not None else ""))
+          + (f" and {bt.with_suffix('.ot')}" if args.ot else "") + (f" and {rrd}" if rrd is not None else ""))
     print(f"  frames {stats['n_frames']}, points kept {stats['points_kept']:,}, rays cast {stats['rays_cast']:,}, "
           f"leaves {stats['leaf_count']:,}, memory {stats['memory_mb']:.1f} MB (OctoMap memoryUsage), "
           f"{stats['wall_s']:.1f} s = {stats['frames_per_s']:.2f} frames/s")
@@ -183,7 +231,8 @@ def reference_path(ref: str, seq, cfg, frames, out_dir: Path) -> Path:
 
 
 def check_eval_options(args):
-    """eval's options, checked before any data or map is read: (OctoMap config, frame selection)."""
+    """eval's options, checked before any data or map is read: (OctoMap config, distribution config,
+    frame selection)."""
     from mono_map.errors import MonoMapError
     from mono_map.frames import first_frames, parse_frames
     from mono_map.io import check_output_file
@@ -191,6 +240,7 @@ def check_eval_options(args):
 
     check_keep(args.keep)
     cfg = octomap_config(args)
+    dcfg = distribution_config(args)
     selection = parse_frames(args.frames, default=first_frames(DEFAULT_FRAMES))
     if args.stride < 1:
         raise MonoMapError(f"--stride: must be a positive integer, got {args.stride}")
@@ -203,12 +253,12 @@ def check_eval_options(args):
         parse_keeps(args.keeps)
     if args.reference not in ("lidar", "lidar-fov") and not Path(args.reference).is_file():
         raise MonoMapError(f"--reference: {args.reference} is neither lidar, lidar-fov nor an existing .bt file")
-    return cfg, selection
+    return cfg, dcfg, selection
 
 
-def default_map_path(args, cfg, selection) -> Path:
-    """The .bt ``mono-map build --seq SEQ --keep KEEP`` (same --frames/--stride/--model/--out/OctoMap
-    options) writes; MonoMapError if it is not there yet or was built from other data or another model."""
+def default_map_path(args, cfg, dcfg, selection) -> Path:
+    """The .bt ``mono-map build --seq SEQ --keep KEEP`` (same --frames/--stride/--model/--out/OctoMap/
+    --integrate options) writes; MonoMapError if it is not there yet or was built from other data or another model."""
     from mono_map.data.prepare import prepare_sequence
     from mono_map.errors import MonoMapError
     from mono_map.frames import frames_tag
@@ -216,14 +266,17 @@ def default_map_path(args, cfg, selection) -> Path:
     seq = prepare_sequence(args.data_root, args.seq, selection, render=False)
     frames = selection.resolve(len(seq))
     out_dir = sequence_output_dir(args.out, args.seq)
-    path = out_dir / f"{map_stem('mono', args.keep, cfg, frames_tag(frames), args.stride, args.model)}.bt"
+    path = out_dir / (map_stem("mono", args.keep, cfg, frames_tag(frames), args.stride, args.model, args.integrate,
+                               dcfg) + ".bt")
+    how = f"--keep {args.keep:g}" if args.integrate == "keep" else "--integrate distribution"
     if not path.is_file():
         raise MonoMapError(f"--map: none given, and {path} does not exist yet "
-                           f"(build it: mono-map build --seq {args.seq} --keep {args.keep:g}, or pass --map)")
-    ok, why = reusable(path, job_key(seq, "mono", args.keep, cfg, frames, args.stride, args.model))
+                           f"(build it: mono-map build --seq {args.seq} {how}, or pass --map)")
+    ok, why = reusable(path, job_key(seq, "mono", args.keep, cfg, frames, args.stride, args.model,
+                                     integrate=args.integrate, dcfg=dcfg))
     if not ok:
         raise MonoMapError(f"--map: none given, and {path} is stale ({why}); rebuild it with mono-map build "
-                           f"--seq {args.seq} --keep {args.keep:g}, or pass --map")
+                           f"--seq {args.seq} {how}, or pass --map")
     print(f"scoring {path}")
     return path
 
@@ -248,7 +301,7 @@ def run_eval(args) -> int:
     from mono_map.errors import MonoMapError
     from mono_map.frames import FrameSelection
 
-    cfg, selection = check_eval_options(args)
+    cfg, dcfg, selection = check_eval_options(args)
     if args.table:
         from mono_map.mapping.table import TableJob, run_table
 
@@ -257,12 +310,13 @@ def run_eval(args) -> int:
                                f"not {args.reference!r}")
         return run_table(TableJob(seq=args.seq, data_root=args.data_root, frames=selection, out=args.out,
                                   keeps=parse_keeps(args.keeps), stride=args.stride, model=args.model,
-                                  octomap=cfg, reference=args.reference))
+                                  octomap=cfg, reference=args.reference, paper_only=args.paper_only,
+                                  distribution=dcfg))
     from mono_map.data.prepare import prepare_sequence
     from mono_map.eval.map_metrics import evaluate_map, load_tree
     from mono_map.io import write_json_atomic
 
-    map_path = Path(args.map) if args.map else default_map_path(args, cfg, selection)
+    map_path = Path(args.map) if args.map else default_map_path(args, cfg, dcfg, selection)
     side = read_map_sidecar(map_path)  # a corrupt sidecar is refused before any scoring
     tree = load_tree(map_path)
     if args.reference in ("lidar", "lidar-fov"):

@@ -66,8 +66,11 @@ def model_digest(model: str | None) -> str:
 
 
 def job_key(seq, source: str, keep: float, cfg, frames, stride: int, model: str | None,
-            digest: str | None = None) -> dict:
-    """Everything that determines a map: stored in its .json, compared before a map is reused."""
+            digest: str | None = None, integrate: str = "keep", dcfg=None) -> dict:
+    """Everything that determines a map: stored in its .json, compared before a map is reused.
+
+    integrate / dcfg (mono only): "keep" or "distribution" with its DistributionConfig (default
+    settings if None); a distribution map ignores ``keep``."""
     import dataclasses
 
     from mono_map.frames import frames_tag
@@ -82,6 +85,13 @@ def job_key(seq, source: str, keep: float, cfg, frames, stride: int, model: str 
         except (ValueError, UnicodeDecodeError):
             marker = {}
     mono = source == "mono"
+    camera = source in ("mono", "depth-gt")
+    dist = mono and integrate == "distribution"
+    integration = {"method": "batched", "mode": integrate if mono else None, "distribution": None}
+    if dist:
+        from mono_map.mapping.distribution import DistributionConfig
+
+        integration["distribution"] = dataclasses.asdict(dcfg or DistributionConfig())
     precision = None
     if mono and model != "oracle":
         from mono_map.depth.inference import default_precision
@@ -89,9 +99,10 @@ def job_key(seq, source: str, keep: float, cfg, frames, stride: int, model: str 
         precision = default_precision()
     return {"data_root": str(Path(seq.root).resolve()) if seq is not None else None,
             "sequence": getattr(seq, "name", None), "synthetic": marker or None,
-            "source": source, "keep": float(keep) if mono else None, "stride": int(stride) if mono else None,
+            "source": source, "keep": float(keep) if mono and not dist else None,
+            "stride": int(stride) if camera else None,
             "model": (digest or model_digest(model)) if mono else None,
-            "frames": frames_tag(frames), "octomap": dataclasses.asdict(cfg), "integration": "batched",
+            "frames": frames_tag(frames), "octomap": dataclasses.asdict(cfg), "integration": integration,
             "precision": precision}
 
 
@@ -172,10 +183,11 @@ MONO_BYTES_AT_02 = 150e6
 
 
 def estimate_frame_bytes(seq, i: int, source: str, cfg, stride: int, keep: float) -> float:
-    """Peak bytes to integrate frame ``i`` alone (see the constants above; an estimate, not a bound)."""
+    """Peak bytes to integrate frame ``i`` alone (see the constants above; an estimate, not a bound).
+    Camera sources (mono, depth-gt) are estimated from their pixel count."""
     import numpy as np
 
-    if source == "mono":
+    if source in ("mono", "depth-gt"):
         h, w = seq.image_size
         pixels = (-(-h // stride)) * (-(-w // stride)) * keep
         return MONO_BYTES_AT_02 * (0.2 / cfg.resolution) ** 2.5 * pixels / (376 * 1241 * 0.8)
@@ -188,10 +200,18 @@ def estimate_frame_bytes(seq, i: int, source: str, cfg, stride: int, keep: float
     return float(np.sum(lengths / cfg.resolution + 1)) * BYTES_PER_VISIT
 
 
-def check_memory(seq, frames, source: str, cfg, stride: int, keep: float) -> None:
-    """Refuse, before building, settings whose first frame alone would not fit in memory."""
+def check_memory(seq, frames, source: str, cfg, stride: int, keep: float, integrate: str = "keep",
+                 dcfg=None) -> None:
+    """Refuse, before building, settings whose first frame alone would not fit in memory (a distribution
+    build: one ray every ``ray_step``-th pixel of every valid one; depth-gt: every pixel)."""
     from mono_map.errors import MonoMapError
 
+    if source == "depth-gt":
+        keep = 1.0
+    elif source == "mono" and integrate == "distribution":
+        from mono_map.mapping.distribution import DistributionConfig
+
+        keep, stride = 1.0, stride * (dcfg or DistributionConfig()).ray_step
     need = estimate_frame_bytes(seq, frames[0], source, cfg, stride, keep)
     limit, where = memory_limit()
     if need > limit:
@@ -200,16 +220,25 @@ def check_memory(seq, frames, source: str, cfg, stride: int, keep: float) -> Non
                            "use a coarser --res, a --max-range or a larger --stride")
 
 
-def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model: str | None) -> str:
+def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model: str | None,
+             integrate: str = "keep", dcfg=None) -> str:
     """A file stem that encodes every parameter changing the map (the .json's job key decides reuse)."""
     from mono_map.config import OctoMapConfig
+    from mono_map.mapping.distribution import DistributionConfig
 
-    parts = [source if source != "mono" else f"mono-keep{keep:g}"]
-    if source == "mono":
-        if model:
-            parts.append("model-" + Path(str(model)).stem)
-        if stride != 1:
-            parts.append(f"stride{stride}")
+    if source == "mono" and integrate == "distribution":
+        dd, dcfg = DistributionConfig(), dcfg or DistributionConfig()
+        parts = ["mono-dist" + (f"-eps{dcfg.eps:g}" if dcfg.eps != dd.eps else "")
+                 + (f"-temp{dcfg.temperature:g}" if dcfg.temperature != dd.temperature else "")
+                 + (f"-step{dcfg.ray_step}" if dcfg.ray_step != dd.ray_step else "")
+                 + (f"-min{dcfg.min_update:g}" if dcfg.min_update != dd.min_update else "")
+                 + (f"-spread{dcfg.bin_spread:g}" if dcfg.bin_spread != dd.bin_spread else "")]
+    else:
+        parts = [source if source != "mono" else f"mono-keep{keep:g}"]
+    if source == "mono" and model:
+        parts.append("model-" + Path(str(model)).stem)
+    if source in ("mono", "depth-gt") and stride != 1:
+        parts.append(f"stride{stride}")
     parts.append(f"res{cfg.resolution:g}")
     d = OctoMapConfig()
     if cfg.max_range != d.max_range:
@@ -223,33 +252,38 @@ def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model
 
 def build_and_write(seq, source: str, keep: float, cfg, frames, stride: int, model: str | None,
                     out_dir: Path, name: str | None = None, observers=(), show_progress: bool = True,
-                    predictor=None, rrd: Path | None = None, logger=None, digest: str | None = None
-                    ) -> tuple[Path, dict]:
-    """Build one map and publish ``<name>.bt``, ``<name>.json`` (and ``rrd``) together; (bt path, stats).
+                    predictor=None, rrd: Path | None = None, logger=None, digest: str | None = None,
+                    integrate: str = "keep", dcfg=None, write_ot: bool = False) -> tuple[Path, dict]:
+    """Build one map and publish ``<name>.bt``, ``<name>.json`` (with ``write_ot`` the probabilistic
+    ``<name>.ot`` that calibration needs — .bt keeps max-likelihood states only — and ``rrd``)
+    together; (bt path, stats).
 
     ``logger(rrd_path)`` makes the recording observer, given the temporary path the recording is
     written to (renamed with the map only if the whole build succeeds). Nothing is published
-    if the build fails.
+    if the build fails. integrate / dcfg: see :func:`mono_map.mapping.build.build_map`.
     """
     from mono_map.errors import MonoMapError
     from mono_map.frames import frames_tag
     from mono_map.io import atomic_outputs, quiet_native_output, write_json_atomic
-    from mono_map.mapping.build import build_map, load_predictor, write_tree_bt
+    from mono_map.mapping.build import build_map, load_predictor, write_tree_bt, write_tree_ot
 
     frames = list(frames)
-    job = job_key(seq, source, keep, cfg, frames, stride, model, digest)
+    job = job_key(seq, source, keep, cfg, frames, stride, model, digest, integrate, dcfg)
     if source == "mono" and predictor is None:
         predictor = load_predictor(model)
-    name = name or map_stem(source, keep, cfg, frames_tag(frames), stride, model)
+    name = name or map_stem(source, keep, cfg, frames_tag(frames), stride, model, integrate, dcfg)
     bt = out_dir / f"{name}.bt"
-    targets = [bt] + ([Path(rrd)] if rrd is not None else []) + [bt.with_suffix(".json")]
+    extra = ([bt.with_suffix(".ot")] if write_ot else []) + ([Path(rrd)] if rrd is not None else [])
+    targets = [bt] + extra + [bt.with_suffix(".json")]
     with atomic_outputs(*targets) as temps:
+        temp_of = dict(zip(targets, temps))
         observers = list(observers)
         if rrd is not None:
-            observers = [DiskSpaceGuard(Path(rrd))] + observers + [logger(temps[1])]
+            observers = [DiskSpaceGuard(Path(rrd))] + observers + [logger(temp_of[Path(rrd)])]
         try:
             result = build_map(seq, source=source, keep=keep, frames=frames, octomap=cfg, stride=stride,
-                               predictor=predictor, observers=observers, show_progress=show_progress)
+                               predictor=predictor, observers=observers, show_progress=show_progress,
+                               integrate=integrate, distribution=dcfg)
         except RuntimeError as exc:  # rerun's flush timing out: its sink could not write the recording
             if rrd is None:
                 raise
@@ -258,6 +292,11 @@ def build_and_write(seq, source: str, keep: float, cfg, frames, stride: int, mod
         stats["model"] = (model or "shipped binary checkpoint") if source == "mono" else None
         if frames != list(range(frames[0], frames[-1] + 1)):
             stats["frame_indices"] = frames
+        if write_ot:  # before the .bt: writeBinary turns the tree max-likelihood in memory
+            ot = bt.with_suffix(".ot")
+            with _naming(ot), quiet_native_output():
+                write_tree_ot(result.tree, temp_of[ot])
+            stats["ot"] = str(ot)
         with _naming(bt), quiet_native_output():  # OctoMap's own warning on a full disk: reported below
             write_tree_bt(result.tree, temps[0])
         stats["bt"] = str(bt)

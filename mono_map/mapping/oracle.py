@@ -4,16 +4,41 @@ For developing and testing the mapping pipeline without a trained model, and as 
 experiment: each pixel's log-depth gets Gaussian noise whose scale σ grows at depth
 discontinuities (where monocular models smear depth into "streaks"), and the reported entropy is
 the differential entropy of that log-normal error, ``0.5·log(2πe σ²)`` nats — an uncertainty that
-is informative by construction. It is NOT the learned model; results with it say nothing about
-the model's quality.
+is informative by construction. With ``with_probs`` it also gives the distribution it claims:
+the log-normal error around its noisy depth discretised into the depth bins (mass below the first
+edge in the first bin, mass beyond the last edge as ``p_beyond``, the bin probabilities
+conditional on a surface within range as every DepthPrediction's), so both ``--integrate keep``
+and ``--integrate distribution`` run on it. It is NOT the learned model; results with it say
+nothing about the model's quality.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from mono_map.depth.bins import DepthBins
 from mono_map.depth.inference import DepthPrediction
 from mono_map.errors import MonoMapError
+
+
+def lognormal_bin_probs(depth: np.ndarray, sigma: np.ndarray, bins: DepthBins) -> tuple[np.ndarray, np.ndarray]:
+    """N(log depth, σ²) over log-depth, discretised into ``bins``: (K×H×W float32 probabilities, H×W
+    float32 mass beyond the last edge). Mass below the first edge goes to the first bin; pixels with
+    depth ≤ 0 get all mass beyond."""
+    import torch
+
+    d = torch.as_tensor(np.asarray(depth, dtype=np.float32))
+    s = torch.as_tensor(np.asarray(sigma, dtype=np.float32)).clamp_min(1e-6)
+    mu = torch.log(d.clamp_min(1e-6))
+    e = torch.as_tensor(bins.log_edges, dtype=torch.float32).view(-1, 1, 1)
+    c = torch.special.ndtr((e - mu) / s)                  # P(log depth < edge), (K+1)×H×W
+    c[0] = 0.0
+    probs = c[1:] - c[:-1]
+    beyond = 1.0 - c[-1]
+    none = d <= 0
+    probs[:, none] = 0.0
+    beyond[none] = 1.0
+    return probs.clamp_min(0).numpy(), beyond.clamp(0, 1).numpy()
 
 
 class NoisyGroundTruthPredictor:
@@ -24,12 +49,13 @@ class NoisyGroundTruthPredictor:
     """
 
     def __init__(self, sigma: float = 0.03, edge_sigma: float = 0.5, edge_jump: float = 0.1,
-                 edge_width: int = 3, seed: int = 0):
+                 edge_width: int = 3, seed: int = 0, bins: DepthBins | None = None):
         self.sigma = float(sigma)
         self.edge_sigma = float(edge_sigma)
         self.edge_jump = float(edge_jump)
         self.edge_width = int(edge_width)
         self.seed = int(seed)
+        self.bins = bins or DepthBins()
 
     def sigma_map(self, depth: np.ndarray) -> np.ndarray:
         """Per-pixel log-depth noise σ (H×W float32)."""
@@ -52,7 +78,7 @@ class NoisyGroundTruthPredictor:
             grow = g
         return np.where(grow, self.sigma + self.edge_sigma, self.sigma).astype(np.float32)
 
-    def predict_frame(self, seq, i: int, image: np.ndarray | None = None) -> DepthPrediction:
+    def predict_frame(self, seq, i: int, image: np.ndarray | None = None, with_probs: bool = False) -> DepthPrediction:
         gt = seq.depth(i)
         if gt is None:
             raise MonoMapError(f"{seq.path / 'depth_2'}: no ground-truth depth for frame {i}; the oracle "
@@ -63,4 +89,10 @@ class NoisyGroundTruthPredictor:
         depth = np.where(gt > 0, gt * np.exp(noise), np.float32(0.0)).astype(np.float32)
         entropy = (0.5 * np.log(2 * np.pi * np.e * sig.astype(np.float64) ** 2)).astype(np.float32)
         entropy[gt <= 0] = np.inf
-        return DepthPrediction(depth=depth, entropy=entropy)
+        probs = p_beyond = None
+        if with_probs:
+            probs, p_beyond = lognormal_bin_probs(depth, sig, self.bins)
+            # DepthPrediction's convention: bin probabilities conditional on a surface within range
+            within = 1.0 - p_beyond
+            probs = np.where(within > 0, probs / np.where(within > 0, within, 1.0), 0.0).astype(np.float32)
+        return DepthPrediction(depth=depth, entropy=entropy, probs=probs, p_beyond=p_beyond)

@@ -15,8 +15,13 @@ from mono_map import geometry
 def pixels_to_world(depth: np.ndarray, mask: np.ndarray, K: np.ndarray, T_world_cam2: np.ndarray) -> np.ndarray:
     """(N, 3) float64 world points of the masked pixels of an H×W depth image (metres, z-depth)."""
     v, u = np.nonzero(mask)
-    z = np.asarray(depth, dtype=np.float64)[v, u]
-    pts_cam = geometry.backproject_pixels(K, u, v, z)
+    return pixel_points_to_world(u, v, np.asarray(depth, dtype=np.float64)[v, u], K, T_world_cam2)
+
+
+def pixel_points_to_world(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray,
+                          T_world_cam2: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 world points of pixels (u, v) (columns, rows) at z-depths z (metres)."""
+    pts_cam = geometry.backproject_pixels(K, u, v, np.asarray(z, dtype=np.float64))
     return _rigid(T_world_cam2, pts_cam)
 
 

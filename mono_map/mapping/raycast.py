@@ -28,7 +28,7 @@ from mono_map.errors import MonoMapError
 
 TREE_MAX_VAL = 32768          # OctoMap 1.10, tree depth 16
 _DBL_MAX = np.finfo(np.float64).max
-_BITMAP_MAX_CELLS = 400_000_000  # bigger frame boxes fall back to np.unique
+_BITMAP_MAX_CELLS = 400_000_000  # bigger frame boxes fall back to sorting
 
 
 @dataclass
@@ -63,6 +63,13 @@ def key_to_coord(keys: np.ndarray, resolution: float) -> np.ndarray:
     return (np.asarray(keys, dtype=np.float64) - TREE_MAX_VAL + 0.5) * float(resolution)
 
 
+def sorted_unique(a: np.ndarray) -> np.ndarray:
+    """``np.unique(a)`` by sorting: numpy 2.4's hash-based ``np.unique`` is ~100x slower on structured
+    int64 codes such as packed keys or Morton codes (measured: 3 M codes 7.7 s vs 0.1 s)."""
+    s = np.sort(np.asarray(a).ravel())
+    return s[np.r_[True, s[1:] != s[:-1]]] if len(s) else s
+
+
 def pack_keys(keys: np.ndarray) -> np.ndarray:
     """(N, 3) keys → one int64 each (for sets and joins)."""
     k = np.asarray(keys, dtype=np.int64)
@@ -90,7 +97,7 @@ def morton_order(keys: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
-def _norm_f32(d: np.ndarray) -> np.ndarray:
+def norm_f32(d: np.ndarray) -> np.ndarray:
     """``Vector3::norm()``: float32 sum of squares, sqrt in double."""
     sq = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2]
     return np.sqrt(sq.astype(np.float64))
@@ -109,7 +116,7 @@ def discretize(points: np.ndarray, resolution: float) -> tuple[np.ndarray, np.nd
     return keys, centres
 
 
-class _Box:
+class KeyBox:
     """Dense linear indexing of keys inside an axis-aligned box of cells."""
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray, margin: int = 2):
@@ -146,7 +153,7 @@ def _divmod(a: np.ndarray, b: int) -> tuple[np.ndarray, np.ndarray]:
     return q, r
 
 
-def _ray_cells(origin32: np.ndarray, ends32: np.ndarray, resolution: float, box: _Box,
+def _ray_cells(origin32: np.ndarray, ends32: np.ndarray, resolution: float, box: KeyBox,
                key_origin: np.ndarray, mark: np.ndarray | None = None) -> np.ndarray:
     """Linear box indices of ``computeRayKeys(origin, end)`` for every end (free cells, with repeats;
     with ``mark``, which needs the compiled kernel: the distinct cells, marked 1 in ``mark``).
@@ -179,7 +186,7 @@ def _ray_cells(origin32: np.ndarray, ends32: np.ndarray, resolution: float, box:
     lin_end = box.linear(key_end)
 
     d = ends32 - origin32[None, :]                   # float32
-    length = _norm_f32(d).astype(np.float32)         # (float) direction.norm()
+    length = norm_f32(d).astype(np.float32)         # (float) direction.norm()
     d = d / length[:, None]                          # float32 division (direction /= length)
     step = np.sign(d).astype(np.int64)
     o64 = origin32.astype(np.float64)
@@ -238,9 +245,24 @@ def _ray_cells(origin32: np.ndarray, ends32: np.ndarray, resolution: float, box:
     return buf[:off]
 
 
-def _check_in_box(lin: np.ndarray, box: _Box) -> None:
+def _check_in_box(lin: np.ndarray, box: KeyBox) -> None:
     if len(lin) and (lin.min() < 0 or lin.max() >= box.size):
         raise AssertionError("ray left its bounding box")  # cannot happen: the margin covers DDA overshoot
+
+
+def cut_at_range(ends32: np.ndarray, origin32: np.ndarray, max_range: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """OctoMap's max-range rule for float32 ray ends (N, 3): (ends with the too-long ones moved to
+    ``origin + direction · max_range``, float32; bool (N,) rays within range). max_range < 0 or None: no limit."""
+    if max_range is None or max_range < 0:
+        return ends32, np.ones(len(ends32), dtype=bool)
+    d = ends32 - origin32[None, :]
+    inside = norm_f32(d) <= max_range
+    out = ends32.copy()
+    if not inside.all():
+        dfar = d[~inside]
+        nrm = norm_f32(dfar).astype(np.float32)
+        out[~inside] = (origin32[None, :] + (dfar / nrm[:, None]) * np.float32(max_range)).astype(np.float32)
+    return out, inside
 
 
 def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
@@ -272,22 +294,9 @@ def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
     n_rays = len(ends)
 
     # max range: long rays are cut (free cells only, no occupied end point)
-    if max_range is not None and max_range >= 0:
-        dist = _norm_f32(ends - origin32[None, :])
-        inside = dist <= max_range
-        if not inside.all():
-            far = ends[~inside]
-            dfar = far - origin32[None, :]
-            nrm = _norm_f32(dfar).astype(np.float32)
-            dirn = dfar / nrm[:, None]
-            cut = origin32[None, :] + dirn * np.float32(max_range)
-            ray_ends = np.concatenate([ends[inside], cut.astype(np.float32)])
-        else:
-            ray_ends = ends
-        occ_ends = ends[inside]
-    else:
-        ray_ends = ends
-        occ_ends = ends
+    cut, inside = cut_at_range(ends, origin32, max_range)
+    ray_ends = np.concatenate([ends[inside], cut[~inside]]) if not inside.all() else ends
+    occ_ends = ends[inside]
 
     occ_keys = coord_to_key(occ_ends, res)
     ray_end_keys = coord_to_key(ray_ends, res)
@@ -295,7 +304,7 @@ def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
     ok = key_in_range(ray_end_keys)
     ray_ends, ray_end_keys = ray_ends[ok], ray_end_keys[ok]
     all_keys = np.concatenate([ray_end_keys, occ_keys, key_origin[None, :]])
-    box = _Box(all_keys.min(axis=0), all_keys.max(axis=0))
+    box = KeyBox(all_keys.min(axis=0), all_keys.max(axis=0))
 
     occ_lin = box.linear(occ_keys) if len(occ_keys) else np.zeros(0, np.int64)
     if box.size <= _BITMAP_MAX_CELLS:
@@ -311,11 +320,11 @@ def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
             free_lin = np.flatnonzero(mark)
         mark[occ_lin] = 2                          # occupied wins
         free_u = free_lin[mark[free_lin] == 1]
-        occ_u = np.unique(occ_lin)
+        occ_u = sorted_unique(occ_lin)
     else:
         free_lin = _ray_cells(origin32, ray_ends, res, box, key_origin)
         _check_in_box(free_lin, box)
-        occ_u = np.unique(occ_lin)
-        free_u = np.setdiff1d(np.unique(free_lin), occ_u, assume_unique=True)
+        occ_u = sorted_unique(occ_lin)
+        free_u = np.setdiff1d(sorted_unique(free_lin), occ_u, assume_unique=True)
     return KeySets(free=box.keys(free_u), occupied=box.keys(occ_u), n_rays=n_rays, n_endpoints=len(occ_u),
                    lo=box.lo, hi=box.lo + box.dims - 1)

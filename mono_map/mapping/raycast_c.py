@@ -26,6 +26,43 @@ C_SOURCE = r"""
 #include <float.h>
 #include <stdint.h>
 
+/* computeRayKeys' set-up for the ray origin -> e: steps, tMax, tDelta (OctoMap's types); returns the
+   float length |e - origin|. */
+static inline float dda_setup(const float *origin, const float *e, const int64_t *key_origin, double res,
+                              int64_t tree_max_val, int *step, double *tMax, double *tDelta)
+{
+    float d[3] = {e[0] - origin[0], e[1] - origin[1], e[2] - origin[2]};
+    float nsq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    float length = (float) sqrt((double) nsq);
+    d[0] /= length; d[1] /= length; d[2] /= length;
+    for (int a = 0; a < 3; ++a) {
+        if (d[a] > 0.0) step[a] = 1;
+        else if (d[a] < 0.0) step[a] = -1;
+        else step[a] = 0;
+        if (step[a] != 0) {
+            double border = ((double) ((int) key_origin[a] - (int) tree_max_val) + 0.5) * res;
+            border += (float) (step[a] * res * 0.5);
+            tMax[a] = (border - (double) origin[a]) / (double) d[a];
+            tDelta[a] = res / fabs((double) d[a]);
+        } else {
+            tMax[a] = DBL_MAX;
+            tDelta[a] = DBL_MAX;
+        }
+    }
+    return length;
+}
+
+/* One DDA step (the axis whose border is nearest); returns the linear-index change. */
+static inline int64_t dda_step(int64_t *cur, const int *step, double *tMax, const double *tDelta, const int64_t *dl)
+{
+    int dim;
+    if (tMax[0] < tMax[1]) dim = (tMax[0] < tMax[2]) ? 0 : 2;
+    else dim = (tMax[1] < tMax[2]) ? 1 : 2;
+    cur[dim] += step[dim];
+    tMax[dim] += tDelta[dim];
+    return dl[dim];
+}
+
 /* computeRayKeys(origin, end) for n ends. With mark == NULL: writes the linear indices to out
    (the origin cell first for every ray that leaves it) and returns their number, or -1 if cap is
    too small. With mark (a zeroed bitmap of mark_size bytes over the box): writes each index only the
@@ -47,41 +84,136 @@ int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float
         if (ke[0] == key_origin[0] && ke[1] == key_origin[1] && ke[2] == key_origin[2])
             continue;
         EMIT(lin_o);
-        float d[3] = {e[0] - origin[0], e[1] - origin[1], e[2] - origin[2]};
-        float nsq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-        float length = (float) sqrt((double) nsq);
-        d[0] /= length; d[1] /= length; d[2] /= length;
         int step[3];
         double tMax[3], tDelta[3];
         int64_t cur[3] = {key_origin[0], key_origin[1], key_origin[2]};
-        for (int a = 0; a < 3; ++a) {
-            if (d[a] > 0.0) step[a] = 1;
-            else if (d[a] < 0.0) step[a] = -1;
-            else step[a] = 0;
-            if (step[a] != 0) {
-                double border = ((double) ((int) cur[a] - (int) tree_max_val) + 0.5) * res;
-                border += (float) (step[a] * res * 0.5);
-                tMax[a] = (border - (double) origin[a]) / (double) d[a];
-                tDelta[a] = res / fabs((double) d[a]);
-            } else {
-                tMax[a] = DBL_MAX;
-                tDelta[a] = DBL_MAX;
-            }
-        }
+        const float length = dda_setup(origin, e, key_origin, res, tree_max_val, step, tMax, tDelta);
         int64_t lin = lin_o;
         const int64_t dl[3] = {step[0] * strides[0], step[1] * strides[1], step[2] * strides[2]};
         for (;;) {
-            int dim;
-            if (tMax[0] < tMax[1]) dim = (tMax[0] < tMax[2]) ? 0 : 2;
-            else dim = (tMax[1] < tMax[2]) ? 1 : 2;
-            cur[dim] += step[dim];
-            tMax[dim] += tDelta[dim];
-            lin += dl[dim];
+            lin += dda_step(cur, step, tMax, tDelta, dl);
             if (cur[0] == ke[0] && cur[1] == ke[1] && cur[2] == ke[2]) break;
             double dist = tMax[0] < tMax[1] ? tMax[0] : tMax[1];
             dist = dist < tMax[2] ? dist : tMax[2];
             if (dist > (double) length) break;
             EMIT(lin);
+        }
+    }
+    return off;
+}
+
+/* Distribution-weighted rays (see mono_map/mapping/distribution.py). Ray i visits the cells of
+   computeRayKeys(origin, end_i) and, if has_end[i], the end cell. A cell entered at ray length
+   t_in and left at t_out (metres; the end cell is left at max(t_out, |end - origin|)) covers depths
+   [t_in, t_out] * scale[i] of the ray's piecewise-uniform depth distribution (probs p[i*K..], edges
+   e[i*edge_stride..], K bins, p_beyond[i] beyond them). Its expected OctoMap update is
+   dl = P(in)*hit + P(beyond)*miss; updates smaller than min_update in magnitude are dropped. Per cell, the rays combine as: the largest positive dl if any,
+   else the most negative one. With acc (a zeroed float bitmap over the box, 0 = untouched): each
+   cell's index is written to out the first time, acc holds the combined dl; returns the count.
+   With acc == NULL: (index, dl) pairs with repeats into out / out_dl. -1: cap too small; -2: outside. */
+static inline double cdf_at(double z, const float *p, const double *e, int64_t K, int64_t *k, double *cum)
+{
+    while (*k < K && z >= e[*k + 1]) { *cum += (double) p[*k]; ++*k; }
+    double c = *cum;
+    if (*k < K) {
+        double w = e[*k + 1] - e[*k];
+        if (w > 0.0 && z > e[*k]) c += (double) p[*k] * (z - e[*k]) / w;
+    }
+    return c;
+}
+
+/* Far depth of n piecewise-uniform distributions: the depth where P(beyond) = mass - CDF + p_beyond
+   first falls below eps (linear within the bin), else the last edge. */
+void mm_far_depth(const float *probs, const double *p_beyond, const double *edges, int64_t edge_stride,
+                  int64_t K, int64_t n, double eps, double *out)
+{
+    for (int64_t i = 0; i < n; ++i) {
+        const float *p = probs + K * i;
+        const double *e = edges + edge_stride * i;
+        double mass = 0.0;
+        for (int64_t j = 0; j < K; ++j) mass += (double) p[j];
+        double beyond = mass + p_beyond[i];          /* P(beyond) at the lower edge of bin j */
+        double z = e[K];
+        for (int64_t j = 0; j < K; ++j) {
+            double after = beyond - (double) p[j];
+            if (after < eps) {
+                double f = p[j] > 0.0f ? (beyond - eps) / (double) p[j] : 0.0;
+                f = f < 0.0 ? 0.0 : (f > 1.0 ? 1.0 : f);
+                z = e[j] + (e[j + 1] - e[j]) * f;
+                break;
+            }
+            beyond = after;
+        }
+        out[i] = z;
+    }
+}
+
+#define PUT(x, v) do { float v_ = (v); if (v_ != 0.0f && fabsf(v_) >= min_update) { if ((x) < 0 || (x) >= acc_size) return -2; \
+        if (acc) { float o_ = acc[(x)]; \
+            if (o_ == 0.0f) { if (off >= cap) return -1; acc[(x)] = v_; out[off++] = (x); } \
+            else if (v_ > 0.0f ? (o_ < 0.0f || v_ > o_) : (o_ < 0.0f && v_ < o_)) acc[(x)] = v_; } \
+        else { if (off >= cap) return -1; out_dl[off] = v_; out[off++] = (x); } } } while (0)
+int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const float *ends,
+                       const int64_t *key_ends, const uint8_t *has_end, const double *scale, int64_t n,
+                       const float *probs, const double *p_beyond, const double *edges, int64_t edge_stride,
+                       int64_t K, float hit, float miss, float min_update, double res, const int64_t *lo, const int64_t *strides,
+                       int64_t tree_max_val, float *acc, int64_t acc_size, int64_t *out, float *out_dl,
+                       int64_t cap)
+{
+    int64_t off = 0;
+    const int64_t lin_o = (key_origin[0] - lo[0]) * strides[0] + (key_origin[1] - lo[1]) * strides[1]
+                          + (key_origin[2] - lo[2]) * strides[2];
+    for (int64_t i = 0; i < n; ++i) {
+        const float *e = ends + 3 * i;
+        const int64_t *ke = key_ends + 3 * i;
+        const float *p = probs + K * i;
+        const double *ed = edges + edge_stride * i;
+        const double sc = scale[i], pb = p_beyond[i];
+        double mass = 0.0;
+        for (int64_t j = 0; j < K; ++j) mass += (double) p[j];
+        int64_t k = 0;
+        double cum = 0.0;
+        const int same = ke[0] == key_origin[0] && ke[1] == key_origin[1] && ke[2] == key_origin[2];
+        if (same) {                       /* empty ray: only the end cell, holding all the mass */
+            if (has_end[i]) {
+                double c0 = cdf_at(0.0, p, ed, K, &k, &cum);
+                PUT(lin_o, (float) ((mass - c0) * (double) hit + pb * (double) miss));
+            }
+            continue;
+        }
+        int step[3];
+        double tMax[3], tDelta[3];
+        int64_t cur[3] = {key_origin[0], key_origin[1], key_origin[2]};
+        const float length = dda_setup(origin, e, key_origin, res, tree_max_val, step, tMax, tDelta);
+        int64_t lin = lin_o;
+        const int64_t dl[3] = {step[0] * strides[0], step[1] * strides[1], step[2] * strides[2]};
+        double c_in = cdf_at(0.0, p, ed, K, &k, &cum);
+        double t_out = fmin(fmin(tMax[0], tMax[1]), tMax[2]);
+        int64_t cell = lin_o;            /* the cell being left, entered with CDF c_in */
+        for (;;) {
+            lin += dda_step(cur, step, tMax, tDelta, dl);
+            int at_end = cur[0] == ke[0] && cur[1] == ke[1] && cur[2] == ke[2];
+            double dist = tMax[0] < tMax[1] ? tMax[0] : tMax[1];
+            dist = dist < tMax[2] ? dist : tMax[2];
+            int stop = at_end || dist > (double) length;
+            /* the cell left now: free cell of the ray */
+            double c_out = cdf_at(t_out * sc, p, ed, K, &k, &cum);
+            PUT(cell, (float) ((c_out - c_in) * (double) hit + (mass - c_out + pb) * (double) miss));
+            if (stop) {                  /* the end cell: from here to past the end point */
+                if (has_end[i]) {
+                    double t_end = dist > (double) length ? dist : (double) length;
+                    if (!at_end) t_end = (double) length > t_out ? (double) length : t_out;
+                    double c_end = cdf_at(t_end * sc, p, ed, K, &k, &cum);
+                    PUT(lin_o + (ke[0] - key_origin[0]) * strides[0] + (ke[1] - key_origin[1]) * strides[1]
+                        + (ke[2] - key_origin[2]) * strides[2],
+                        (float) ((c_end - c_out) * (double) hit + (mass - c_end + pb) * (double) miss));
+                }
+                break;
+            }
+            if (mass - c_out + pb <= 0.0) break;   /* no mass left from here on */
+            c_in = c_out;
+            t_out = dist;
+            cell = lin;
         }
     }
     return off;
@@ -98,7 +230,8 @@ def _cache_dir() -> Path:
 
 
 def load_kernel():
-    """The compiled ``mm_ray_cells`` (ctypes function) or None if unavailable/disabled."""
+    """The compiled ``mm_ray_cells`` (ctypes function; ``.weights`` is ``mm_ray_weights``) or None if
+    unavailable/disabled."""
     global _LIB, _TRIED
     if os.environ.get("MONO_MAP_NO_C", "0") == "1":
         return None
@@ -125,6 +258,15 @@ def load_kernel():
         fn.argtypes = [p, p, p, p, ctypes.c_int64, ctypes.c_double, p, p, ctypes.c_int64, p, ctypes.c_int64, p,
                        ctypes.c_int64]
         fn.restype = ctypes.c_int64
+        wfn = lib.mm_ray_weights
+        i64, f32, f64 = ctypes.c_int64, ctypes.c_float, ctypes.c_double
+        wfn.argtypes = [p, p, p, p, p, p, i64, p, p, p, i64, i64, f32, f32, f32, f64, p, p, i64, p, i64, p, p, i64]
+        wfn.restype = ctypes.c_int64
+        fn.weights = wfn
+        ffn = lib.mm_far_depth
+        ffn.argtypes = [p, p, p, i64, i64, i64, f64, p]
+        ffn.restype = None
+        fn.far_depth = ffn
         _LIB = fn
     except (OSError, subprocess.SubprocessError) as exc:
         print(f"mono-map: note: compiled ray kernel unavailable ({type(exc).__name__}); using numpy", file=sys.stderr)
@@ -212,3 +354,111 @@ def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.nda
         if n >= 0:
             return out[:n]
         cap *= 2
+
+
+def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.ndarray, key_ends: np.ndarray,
+                  has_end: np.ndarray, scale: np.ndarray, probs: np.ndarray, p_beyond: np.ndarray,
+                  edges: np.ndarray, hit: float, miss: float, resolution: float, lo: np.ndarray,
+                  strides: np.ndarray, tree_max_val: int, box_size: int, min_update: float = 0.0,
+                  dense: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Run ``mm_ray_weights``: (linear box indices, float32 log-odds updates) of the distribution-weighted
+    rays, one entry per distinct cell (rays combined: largest positive update, else most negative).
+    dense=True accumulates in a float32 buffer over the whole box (reused across frames; on two threads
+    for large frames, each half in its own buffer, merged by the same rule); dense=False writes
+    (index, update) pairs with repeats and combines them here (for boxes too large to allocate).
+    edges: (K+1,) for all rays or (N, K+1) per ray, float64 metres."""
+    c = dict(o=np.ascontiguousarray(origin32, dtype=np.float32), ko=np.ascontiguousarray(key_origin, dtype=np.int64),
+             lo=np.ascontiguousarray(lo, dtype=np.int64), st=np.ascontiguousarray(strides, dtype=np.int64),
+             hit=float(hit), miss=float(miss), min_update=float(min_update), res=float(resolution),
+             tmv=int(tree_max_val), box_size=int(box_size))
+    rays = dict(e=np.ascontiguousarray(ends32, dtype=np.float32), ke=np.ascontiguousarray(key_ends, dtype=np.int64),
+                he=np.ascontiguousarray(has_end, dtype=np.uint8), sc=np.ascontiguousarray(scale, dtype=np.float64),
+                pr=np.ascontiguousarray(probs, dtype=np.float32), pb=np.ascontiguousarray(p_beyond, dtype=np.float64),
+                ed=np.ascontiguousarray(edges, dtype=np.float64))
+    if not dense:
+        lin, dl = _weights_run(fn, c, rays, None)
+        return combine_updates(lin, dl)
+    n = len(rays["e"])
+    if n < _PARALLEL_MIN_RAYS or _threads() < 2:
+        acc = _zeroed_accumulator(0, box_size)
+        lin, _ = _weights_run(fn, c, rays, acc)
+        dl = acc[lin]
+        acc[lin] = 0.0                       # leave the buffer zeroed for the next frame
+        return lin, dl
+    steps = np.cumsum(np.abs(rays["ke"] - c["ko"][None, :]).sum(axis=1))
+    cut = int(np.searchsorted(steps, steps[-1] / 2))
+    halves = [{k: (v if (k == "ed" and v.ndim == 1) else v[sl]) for k, v in rays.items()}
+              for sl in (slice(0, cut), slice(cut, n))]
+    acc_a, acc_b = _zeroed_accumulator(0, box_size), _zeroed_accumulator(1, box_size)
+    future = _pool().submit(_weights_run, fn, c, halves[1], acc_b)
+    lin_a, _ = _weights_run(fn, c, halves[0], acc_a)
+    lin_b, _ = future.result()
+    old, new = acc_a[lin_b], acc_b[lin_b]
+    acc_b[lin_b] = 0.0
+    take = (old == 0) | np.where(new > 0, (old < 0) | (new > old), (old < 0) & (new < old))
+    acc_a[lin_b[take]] = new[take]
+    lin = np.concatenate([lin_a, lin_b[old == 0]])
+    dl = acc_a[lin]
+    acc_a[lin] = 0.0
+    return lin, dl
+
+
+def _weights_run(fn, c: dict, r: dict, acc: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """One ``mm_ray_weights`` call over rays ``r``: (distinct indices, None) accumulating into ``acc``, or
+    with acc None the (index, update) pairs with repeats."""
+    k = r["pr"].shape[1]
+    edge_stride = 0 if r["ed"].ndim == 1 else r["ed"].shape[1]
+    cap = _capacity(r["ke"], c["ko"]) + len(r["e"])
+    if acc is not None:
+        cap = min(cap, c["box_size"])
+    while True:
+        out = np.empty(cap, dtype=np.int64)
+        out_dl = None if acc is not None else np.empty(cap, dtype=np.float32)
+        n = int(fn.weights(c["o"].ctypes.data, c["ko"].ctypes.data, r["e"].ctypes.data, r["ke"].ctypes.data,
+                           r["he"].ctypes.data, r["sc"].ctypes.data, len(r["e"]), r["pr"].ctypes.data,
+                           r["pb"].ctypes.data, r["ed"].ctypes.data, edge_stride, k, c["hit"], c["miss"],
+                           c["min_update"], c["res"], c["lo"].ctypes.data, c["st"].ctypes.data, c["tmv"],
+                           None if acc is None else acc.ctypes.data, c["box_size"], out.ctypes.data,
+                           None if out_dl is None else out_dl.ctypes.data, len(out)))
+        if n == -2:
+            raise AssertionError("ray left its bounding box")  # the margin covers DDA overshoot
+        if n >= 0:
+            return out[:n], None if out_dl is None else out_dl[:n]
+        if acc is not None:     # cannot happen (distinct cells <= box); guard against a partial write
+            raise AssertionError("accumulator capacity exceeded")
+        cap *= 2
+
+
+_ACC: list[np.ndarray] = [np.zeros(0, dtype=np.float32), np.zeros(0, dtype=np.float32)]
+
+
+def _zeroed_accumulator(slot: int, size: int) -> np.ndarray:
+    """Zeroed float32 buffer ``slot`` (one per thread) of at least ``size`` cells, reused across frames
+    (allocating and faulting in hundreds of MB per frame would cost more than the rays); callers zero
+    what they touched."""
+    if len(_ACC[slot]) < size:
+        _ACC[slot] = np.zeros(max(size, int(len(_ACC[slot]) * 1.25)), dtype=np.float32)
+    return _ACC[slot]
+
+
+def combine_updates(lin: np.ndarray, dl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per distinct index: the largest positive update if any, else the most negative (the kernel's rule)."""
+    if len(lin) == 0:
+        return lin, dl
+    order = np.argsort(lin, kind="stable")
+    lin, dl = lin[order], dl[order]
+    starts = np.flatnonzero(np.r_[True, lin[1:] != lin[:-1]])
+    hi = np.maximum.reduceat(dl, starts)
+    low = np.minimum.reduceat(dl, starts)
+    return lin[starts], np.where(hi > 0, hi, low).astype(np.float32)
+
+
+def far_depth_c(fn, probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, eps: float) -> np.ndarray:
+    """``mm_far_depth``: (N,) float64 depth where P(beyond) first falls below eps (see distribution.far_depth)."""
+    pr = np.ascontiguousarray(probs, dtype=np.float32)
+    pb = np.ascontiguousarray(p_beyond, dtype=np.float64)
+    ed = np.ascontiguousarray(edges, dtype=np.float64)
+    out = np.empty(len(pr), dtype=np.float64)
+    fn.far_depth(pr.ctypes.data, pb.ctypes.data, ed.ctypes.data, 0 if ed.ndim == 1 else ed.shape[1], pr.shape[1],
+                 len(pr), float(eps), out.ctypes.data)
+    return out

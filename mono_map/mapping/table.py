@@ -1,26 +1,37 @@
 """``mono-map eval --table``: the paper's Table IV for our data, plus a keep sweep.
 
-Builds (or reuses, cached under ``outputs/seq<SEQ>/``; a map is reused only if its .json records the same job: data
-root, model digest, settings and frames) the LiDAR-FOV map and
-monocular maps for every keep of the sweep, scores each against the LiDAR-FOV map (``--reference
-lidar``: against the whole 360° LiDAR map, as the paper, where LiDAR-FOV is a scored row), and writes
-Markdown + JSON + a PNG of accuracy and memory against keep, and the top-down pictures.
+Builds (or reuses, cached under ``outputs/seq<SEQ>/``; a map is reused only if its .json records the
+same job: data root, model digest, settings, integration and frames) the LiDAR-FOV map, monocular maps
+for every keep of the sweep and, unless ``paper_only``, the camera ground-truth map (``depth-gt``,
+synthetic sequences) and the distribution-integrated map; scores each against the LiDAR-FOV map
+(``--reference lidar``: against the whole 360° LiDAR map, as the paper, where LiDAR-FOV is a scored
+row) — accuracy, coverage, occupied P/R/F1, memory, surface precision against depth-gt, and the
+calibration (ECE, reliability diagram) of the keep 1.0, keep 0.8 and distribution maps from their
+probabilistic ``.ot`` trees — and writes Markdown + JSON, a PNG of accuracy and memory against keep,
+the accuracy-vs-memory plot (keep sweep a curve, distribution a point), the reliability diagram and
+the top-down pictures.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from mono_map.config import OctoMapConfig
 from mono_map.frames import FrameSelection
 from mono_map.io import prepare_output_dir
+from mono_map.mapping.distribution import DistributionConfig
 from mono_map.paths import sequence_output_dir
+
+CALIBRATED = ("mono (keep 1.0)", "mono keep 0.8", "mono, distribution")   # rows with a .ot and an ECE
 
 
 @dataclass(frozen=True)
 class TableJob:
-    """What ``eval --table`` scores: sequence, data root, frames, maps' settings, reference."""
+    """What ``eval --table`` scores: sequence, data root, frames, maps' settings, reference.
+
+    paper_only: only the paper's rows (LiDAR-FOV, keep sweep), no depth-gt, distribution map or
+    calibration; distribution: the settings of the distribution-integrated row."""
 
     seq: str
     data_root: str | None
@@ -31,14 +42,18 @@ class TableJob:
     model: str | None
     octomap: OctoMapConfig
     reference: str = "lidar-fov"
+    paper_only: bool = False
+    distribution: DistributionConfig = field(default_factory=DistributionConfig)
 
 
-def _cached(bt: Path, job: dict, build):
+def _cached(bt: Path, job: dict, build, need_ot: bool = False):
     """Reuse ``bt`` if its .json says it was built by exactly ``job`` (data root, model digest,
-    settings, frames); else build it again, saying why."""
+    settings, frames) and, with ``need_ot``, its .ot is there; else build it again, saying why."""
     from mono_map.mapping.jobs import read_map_sidecar, reusable
 
     ok, why = reusable(bt, job)
+    if ok and need_ot and not bt.with_suffix(".ot").is_file():
+        ok, why = False, f"{bt.with_suffix('.ot').name} missing"
     if ok:
         print(f"  reusing {bt}")
         return bt, read_map_sidecar(bt)["stats"]
@@ -49,13 +64,14 @@ def _cached(bt: Path, job: dict, build):
 
 def run_table(job: TableJob) -> int:
     from mono_map.data.prepare import prepare_sequence
-    from mono_map.eval.map_metrics import evaluate_map, load_tree
+    from mono_map.eval.map_metrics import calibration, compare_leaves, load_tree, surface_precision, tree_leaves, tree_summary
     from mono_map.frames import frames_tag
     from mono_map.io import write_json_atomic, write_text_atomic
     from mono_map.mapping.build import load_predictor
     from mono_map.mapping.jobs import build_and_write, job_key, map_stem, model_digest
 
     cfg = job.octomap
+    dcfg = job.distribution
     reference = job.reference
     keeps = job.keeps
     out_dir = prepare_output_dir(sequence_output_dir(job.out, job.seq))
@@ -67,72 +83,110 @@ def run_table(job: TableJob) -> int:
     tag = frames_tag(frames)
     print(f"mono-map eval --table: sequence {job.seq}, {desc}, {cfg.resolution:g} m cells, model "
           f"{job.model or 'shipped binary checkpoint'}")
+    extended = not job.paper_only
+    calibrated = CALIBRATED if extended else ()
 
-    def build_mono(keep):
-        return build_and_write(seq, "mono", keep, cfg, frames, job.stride, job.model, out_dir,
-                               predictor=predictor, digest=digest)
+    def cached_map(source, keep=1.0, stride=1, model=None, integrate="keep", write_ot=False):
+        bt = out_dir / f"{map_stem(source, keep, cfg, tag, stride, model, integrate, dcfg)}.bt"
+        mono = source == "mono"
+        key = job_key(seq, source, keep, cfg, frames, stride, model, digest if mono else None, integrate, dcfg)
+        return _cached(bt, key, lambda: build_and_write(
+            seq, source, keep, cfg, frames, stride, model, out_dir, predictor=predictor if mono else None,
+            digest=digest if mono else None, integrate=integrate, dcfg=dcfg, write_ot=write_ot), need_ot=write_ot)
 
-    def lidar_map(source):
-        bt = out_dir / f"{map_stem(source, 1.0, cfg, tag, 1, None)}.bt"
-        return _cached(bt, job_key(seq, source, 1.0, cfg, frames, 1, None), lambda: build_and_write(
-            seq, source, 1.0, cfg, frames, 1, None, out_dir))
-
-    fov_bt, fov_stats = lidar_map("lidar-fov")
+    fov_bt, fov_stats = cached_map("lidar-fov")
     entries = [("LiDAR-FOV", "lidar-fov", None, fov_bt, fov_stats)]
     if reference == "lidar":  # the paper's ground truth: the whole LiDAR map; LiDAR-FOV is then a row to score
-        ref_bt, _ = lidar_map("lidar")
+        ref_bt, _ = cached_map("lidar")
     else:
         ref_bt = fov_bt
-    ref = load_tree(ref_bt)
-    rows = []
+    gt_bt = None
+    if extended and seq.depth(frames[0]) is not None:  # synthetic: the camera ground-truth map (upper bound, surfaces)
+        gt_bt, gt_stats = cached_map("depth-gt")       # every pixel, whatever --stride: the true surfaces, dense
+        entries.append(("camera ground truth (depth-gt)", "depth-gt", None, gt_bt, gt_stats))
     for keep in sorted(keeps, reverse=True):
-        bt = out_dir / f"{map_stem('mono', keep, cfg, tag, job.stride, job.model)}.bt"
-        bt, stats = _cached(bt, job_key(seq, "mono", keep, cfg, frames, job.stride, job.model, digest),
-                            lambda keep=keep: build_mono(keep))
         label = "mono (keep 1.0)" if keep == 1.0 else f"mono keep {keep:g}"
+        bt, stats = cached_map("mono", keep, job.stride, job.model, write_ot=label in calibrated)
         entries.append((label, "mono", keep, bt, stats))
-    trees = {}
-    for label, source, keep, bt, stats in entries:
-        tree = ref if bt == ref_bt else load_tree(bt)
-        trees[label] = tree
-        m = evaluate_map(tree, ref)
-        rows.append({"method": label, "source": source, "keep": keep, "bt": str(bt),
-                     "accuracy": m["accuracy"], "coverage": m["coverage"], "accuracy_covered": m["accuracy_covered"],
-                     "precision": m["precision"], "recall": m["recall"], "f1": m["f1"],
-                     "memory_mb": stats["memory_mb"], "bt_memory_mb": m["map"]["memory_mb"],
-                     "leaf_count": stats["leaf_count"], "bt_bytes": stats.get("bt_bytes"),
-                     "frames_per_s": stats["frames_per_s"], "points_kept": stats["points_kept"]})
+    if extended:
+        bt, stats = cached_map("mono", 1.0, job.stride, job.model, integrate="distribution", write_ot=True)
+        entries.append(("mono, distribution", "mono-distribution", None, bt, stats))
 
-    md = table_markdown(rows, job.seq, desc, cfg, job.model, reference)
+    ref_leaves = tree_leaves(load_tree(ref_bt))
+    gt_leaves = tree_leaves(load_tree(gt_bt)) if gt_bt is not None else None
+    rows, trees, reliability = [], {}, {}
+    for label, source, keep, bt, stats in entries:
+        tree = load_tree(bt)
+        trees[label] = tree
+        leaves = tree_leaves(tree)
+        m = compare_leaves(leaves, ref_leaves)
+        row = {"method": label, "source": source, "keep": keep, "bt": str(bt),
+               "accuracy": m["accuracy"], "coverage": m["coverage"], "accuracy_covered": m["accuracy_covered"],
+               "precision": m["precision"], "recall": m["recall"], "f1": m["f1"],
+               "memory_mb": stats["memory_mb"], "bt_memory_mb": tree_summary(tree)["memory_mb"],
+               "leaf_count": stats["leaf_count"], "bt_bytes": stats.get("bt_bytes"),
+               "frames_per_s": stats["frames_per_s"], "points_kept": stats["points_kept"],
+               "occupied_cells": int(leaves.length[leaves.occupied].sum()),
+               "surface_precision": None, "ece": None}
+        if gt_leaves is not None:
+            row["surface_precision"] = surface_precision(leaves, gt_leaves)["surface_precision"]
+        if label in calibrated:
+            cal = calibration(tree_leaves(load_tree(bt.with_suffix(".ot"))), ref_leaves)
+            reliability[label] = cal
+            row["ece"] = cal["ece"]
+        rows.append(row)
+
+    md = table_markdown(rows, job.seq, desc, cfg, job.model, reference, dcfg if extended else None)
     stem = (f"table_{tag}_res{cfg.resolution:g}" + (f"_model-{Path(job.model).stem}" if job.model else "")
             + ("_ref-lidar" if reference == "lidar" else ""))
     write_text_atomic(out_dir / f"{stem}.md", md)
     write_json_atomic(out_dir / f"{stem}.json", {"sequence": job.seq, "frames": [frames[0], frames[-1] + 1],
                                                   "reference": reference, "resolution": cfg.resolution,
-                                                  "model": job.model, "model_digest": digest, "rows": rows})
-    from mono_map.viz.plots import plot_sweep, render_topdown
+                                                  "model": job.model, "model_digest": digest, "rows": rows,
+                                                  "distribution": dcfg.__dict__ if extended else None,
+                                                  "reliability": reliability})
+    from mono_map.viz.plots import plot_accuracy_memory, plot_reliability, plot_sweep, render_topdown
 
-    plot_sweep(rows, out_dir / f"{stem}_sweep.png", "LiDAR-FOV" if reference == "lidar-fov" else "LiDAR")
+    ref_label = "LiDAR-FOV" if reference == "lidar-fov" else "LiDAR"
+    plot_sweep(rows, out_dir / f"{stem}_sweep.png", ref_label)
+    pngs = [f"{stem}_sweep.png"]
+    if extended:
+        plot_accuracy_memory(rows, out_dir / f"{stem}_acc_memory.png", ref_label)
+        plot_reliability(reliability, out_dir / f"{stem}_reliability.png", ref_label)
+        pngs += [f"{stem}_acc_memory.png", f"{stem}_reliability.png"]
 
     pics = [("LiDAR-FOV", trees["LiDAR-FOV"]), ("mono (keep 1.0)", trees["mono (keep 1.0)"]),
             ("mono keep 0.8", trees["mono keep 0.8"])]
+    if extended:
+        pics.append(("mono, distribution", trees["mono, distribution"]))
     render_topdown(pics, out_dir / f"{stem}_topdown.png")
     print(md)
-    print(f"wrote {out_dir / (stem + '.md')}, .json, {stem}_sweep.png, {stem}_topdown.png")
+    print(f"wrote {out_dir / (stem + '.md')}, .json, {', '.join(pngs)}, {stem}_topdown.png")
     return 0
 
 
-def table_markdown(rows: list[dict], seq: str, desc: str, cfg, model, reference: str = "lidar-fov") -> str:
+def _pct(v) -> str:
+    return "–" if v is None else f"{100 * v:.1f}"
+
+
+def table_markdown(rows: list[dict], seq: str, desc: str, cfg, model, reference: str = "lidar-fov",
+                   dcfg=None) -> str:
+    dist = "" if dcfg is None else (f" Distribution map: eps {dcfg.eps:g}, min update {dcfg.min_update:g}, "
+                                    f"ray step {dcfg.ray_step}, temperature {dcfg.temperature:g}.")
     lines = [f"Sequence {seq}, {desc}, {cfg.resolution:g} m cells, model {model or 'shipped binary'}; "
              f"reference = {'LiDAR-FOV' if reference == 'lidar-fov' else 'whole LiDAR (360°)'} map. Accuracy: share of the reference's known cells (volume-weighted, "
              "finest cells) whose free/occupied state the map reproduces, unknown = wrong. Memory: OctoMap "
-             "memoryUsage() of the probabilistic tree after the build.",
+             "memoryUsage() of the probabilistic tree after the build. Surface precision: share of the map's "
+             "occupied cells within one cell of an occupied depth-gt cell. ECE: expected calibration error of "
+             "the probabilistic tree's occupancy probabilities over the cells the reference knows (10 bins)." + dist,
              "",
-             "| Method | Accuracy (%) | Coverage (%) | Acc. covered (%) | Occ. P / R / F1 (%) | Memory (MB) | Leaves |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+             "| Method | Accuracy (%) | Coverage (%) | Acc. covered (%) | Occ. P / R / F1 (%) | Surface prec. (%) | "
+             "Occupied cells | ECE | Memory (MB) | Leaves |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
+        ece = "–" if r.get("ece") is None else f"{r['ece']:.3f}"
         lines.append(f"| {r['method']} | {100 * r['accuracy']:.1f} | {100 * r['coverage']:.1f} | "
                      f"{100 * r['accuracy_covered']:.1f} | {100 * r['precision']:.1f} / {100 * r['recall']:.1f} / "
-                     f"{100 * r['f1']:.1f} | {r['memory_mb']:.1f} | {r['leaf_count']:,} |")
+                     f"{100 * r['f1']:.1f} | {_pct(r.get('surface_precision'))} | {r.get('occupied_cells', 0):,} | "
+                     f"{ece} | {r['memory_mb']:.1f} | {r['leaf_count']:,} |")
     return "\n".join(lines) + "\n"
-

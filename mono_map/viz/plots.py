@@ -5,6 +5,8 @@
   colour encodes height = -y, normalised over the shown maps (shared range), taken per pixel from
   the highest occupied cell.
 * :func:`plot_sweep` — map accuracy and memory against ``keep`` (``mono-map table``).
+* :func:`plot_accuracy_memory` — accuracy against memory: keep sweep a curve, distribution map a point.
+* :func:`plot_reliability` — reliability diagrams of maps' occupancy probabilities (``eval --table``).
 * :func:`plot_sparsification` — sparsification and oracle curves per head (``mono-map evaluate``).
 * :func:`plot_hypotheses` — oracle multi-hypothesis errors against M (``mono-map evaluate``).
 """
@@ -124,6 +126,55 @@ def plot_sweep(rows: list[dict], path: Path, reference_label: str = "LiDAR-FOV")
         ax1.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2,
                    frameon=False)  # below the axes: the curves use the whole plot
         ax1.grid(alpha=0.3)
+        fig.tight_layout()
+
+
+def plot_accuracy_memory(rows: list[dict], path: Path, reference_label: str = "LiDAR-FOV") -> None:
+    """Accuracy (and accuracy on covered cells) against memory: the keep sweep (source "mono") a
+    curve, the distribution map (source "mono-distribution") a point."""
+    sweep = sorted((r for r in rows if r["source"] == "mono"), key=lambda r: r["memory_mb"])
+    dist = [r for r in rows if r["source"] == "mono-distribution"]
+    with figure(path, 130) as plt:
+        fig, ax = plt.subplots(figsize=(6.4, 4.6))
+        for key, style, name in (("accuracy", "o-", "accuracy"), ("accuracy_covered", "s--", "acc. on covered cells")):
+            ax.plot([r["memory_mb"] for r in sweep], [100 * r[key] for r in sweep], style, color="tab:blue",
+                    label=f"keep sweep: {name}", alpha=1.0 if key == "accuracy" else 0.6)
+            for r in dist:
+                ax.plot(r["memory_mb"], 100 * r[key], "*" if key == "accuracy" else "P", color="tab:red", ms=14,
+                        label=f"distribution: {name}", alpha=1.0 if key == "accuracy" else 0.6)
+        for r in sweep:
+            ax.annotate(f"{r['keep']:g}", (r["memory_mb"], 100 * r["accuracy"]), textcoords="offset points",
+                        xytext=(4, -10), fontsize=7, color="tab:blue")
+        ax.set_xlabel("memory (MB, OctoMap memoryUsage)")
+        ax.set_ylabel(f"accuracy vs {reference_label} map (%)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
+        fig.tight_layout()
+
+
+def plot_reliability(reliability: dict, path: Path, reference_label: str = "LiDAR-FOV") -> None:
+    """Reliability diagram: per map (label -> :func:`mono_map.eval.map_metrics.calibration` result), the
+    share of cells the reference has occupied against the map's occupancy probability (binned), with
+    the bins' weights below."""
+    with figure(path, 130) as plt:
+        fig, (ax, axw) = plt.subplots(2, 1, figsize=(5.6, 6.2), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+        ax.plot([0, 1], [0, 1], ":", color="grey", lw=1, label="perfectly calibrated")
+        n = max(len(reliability), 1)
+        for j, (label, cal) in enumerate(reliability.items()):
+            conf, freq, w = (np.asarray(cal[k], dtype=float) for k in ("confidence", "frequency", "weight"))
+            ok = w > 0
+            ax.plot(conf[ok], freq[ok], "o-", label=f"{label} (ECE {cal['ece']:.3f})")
+            edges = np.asarray(cal["bin_edges"])
+            width = (edges[1] - edges[0]) / (n + 1)
+            axw.bar(edges[:-1] + (j + 0.5) * width, w, width=width, align="edge", label=label)
+        ax.set_ylabel(f"share occupied in the {reference_label} map")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        axw.set_xlabel("map's occupancy probability (cells both maps know)")
+        axw.set_ylabel("share of cells")
+        axw.set_yscale("log")
         fig.tight_layout()
 
 

@@ -1,0 +1,254 @@
+"""Distribution-aware integration: each pixel's depth distribution sets the log-odds along its ray.
+
+A pixel's prediction is a piecewise-uniform density over depth (metres along the optical axis):
+K bins with probabilities ``probs`` between ``edges`` (mass spread uniformly over each bin's
+length; a zero-width bin is a point mass), plus ``p_beyond``, the probability of no surface within
+range. A cell the ray crosses between depths [z_in, z_out] gets the *expected* OctoMap update
+
+    dl = P(z_in ≤ surface < z_out) · logit(prob_hit) + P(surface ≥ z_out or beyond range) · logit(prob_miss)
+
+(mass before the cell says nothing about it). A confident pixel updates like a LiDAR return, an
+uncertain one barely moves its cells, a two-mode pixel puts partial occupancy at both modes.
+
+Rays stop at the *far depth*, where P(beyond) first falls below ``eps`` (or at the last bin edge):
+the ray is cast, with OctoMap's own DDA (:mod:`raycast_c`), to the centre of the cell holding the
+pixel's point at that depth, and the depth along it is z = t · far_depth / |centre − origin| (t =
+metres from the origin). The far cell is the ray's end cell; rays beyond ``max_range`` are cut
+there and update free cells only, as OctoMap does.
+
+Per frame, several rays meeting one cell give it ONE update (OctoMap's per-scan rule, generalised):
+the largest positive dl if any ray has one ("occupied wins"), else the most negative (the strongest
+free evidence). With a point mass at each pixel's depth, dl is exactly logit(prob_hit) in the end
+cell and logit(prob_miss) before it, the far depth is the pixel's depth and the ray goes to the
+centre of its end cell — OctoMap's ``insertPointCloud(discretize=True)`` key sets with their
+updates, so the map equals the ``--keep 1.0`` map bit for bit (tested).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mono_map.errors import MonoMapError
+from mono_map.mapping.raycast import KeyBox, TREE_MAX_VAL, coord_to_key, cut_at_range, key_in_range, key_to_coord, norm_f32
+
+INTEGRATIONS = ("keep", "distribution")
+_SUM_TOL = 1e-3       # probs + p_beyond may exceed 1 by float32 rounding, not more
+_DENSE_MAX_CELLS = 300_000_000   # larger frame boxes combine (index, update) pairs by sorting instead
+
+
+@dataclass(frozen=True)
+class DistributionConfig:
+    """Settings of ``--integrate distribution``.
+
+    eps: rays stop where P(surface beyond) < eps; temperature: probabilities are sharpened (< 1)
+    or flattened (> 1) as p^(1/T), renormalised to their mass, before use (1 = as predicted);
+    ray_step: one ray every ray_step-th pixel row and column (on top of ``--stride``);
+    min_update: updates weaker than this (log-odds magnitude) are dropped — a cell is created only
+    when a ray says something about it (0 = keep all);
+    bin_spread: each bin's mass spread over this central fraction of the bin (log-depth), the pattern
+    shifted so the modal bin's mass sits at the pixel's local mean depth (1 = whole bins, unshifted;
+    see :func:`narrow_bins`).
+    """
+
+    eps: float = 0.2           # chosen on training town 06 (docs/results.md), never on 00
+    temperature: float = 1.0
+    ray_step: int = 2          # ~ the network's input resolution (192×640 for 376×1241 images)
+    min_update: float = 0.05
+    bin_spread: float = 1.0
+
+
+@dataclass
+class CellUpdates:
+    """One frame's distribution update: distinct cell keys (int64 (M, 3)) and float32 log-odds updates."""
+
+    keys: np.ndarray
+    dl: np.ndarray
+    n_rays: int = 0
+    lo: np.ndarray | None = None      # inclusive key bounds of the frame's box
+    hi: np.ndarray | None = None
+
+
+def check_distribution_config(cfg: DistributionConfig) -> DistributionConfig:
+    if not (0.0 < cfg.eps < 1.0):
+        raise MonoMapError(f"--eps: must be in (0, 1), got {cfg.eps}")
+    if not (cfg.temperature > 0 and np.isfinite(cfg.temperature)):
+        raise MonoMapError(f"--temperature: must be a positive number, got {cfg.temperature}")
+    if not (0.0 < cfg.bin_spread <= 1.0):
+        raise MonoMapError(f"--bin-spread: must be in (0, 1], got {cfg.bin_spread}")
+    if not (0.0 <= cfg.min_update < 0.4):
+        raise MonoMapError(f"--min-update: must be in [0, 0.4) (log-odds), got {cfg.min_update}")
+    if int(cfg.ray_step) != cfg.ray_step or cfg.ray_step < 1:
+        raise MonoMapError(f"--ray-step: must be a positive integer, got {cfg.ray_step}")
+    return cfg
+
+
+def check_distribution(probs: np.ndarray, p_beyond: np.ndarray | None, edges: np.ndarray,
+                       what: str = "distribution") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate and normalise the types: (probs float32 (N, K), p_beyond float64 (N,), edges float64
+    (K+1,) or (N, K+1)). MonoMapError (one line naming ``what``) for NaN/inf, negative values, a
+    total above 1, or edges that are not finite, non-negative and non-decreasing."""
+    probs = np.asarray(probs)
+    if probs.ndim != 2:
+        raise MonoMapError(f"{what}: probabilities must be (N pixels, K bins), got shape {probs.shape}")
+    n, k = probs.shape
+    pb = np.zeros(n) if p_beyond is None else np.asarray(p_beyond, dtype=np.float64).reshape(-1)
+    if len(pb) != n:
+        raise MonoMapError(f"{what}: p_beyond has {len(pb)} values for {n} pixels")
+    edges = np.asarray(edges, dtype=np.float64)
+    if edges.shape not in ((k + 1,), (n, k + 1)):
+        raise MonoMapError(f"{what}: bin edges must be ({k + 1},) or ({n}, {k + 1}), got {edges.shape}")
+    if not np.isfinite(edges).all() or (edges < 0).any() or (np.diff(edges, axis=-1) < 0).any():
+        raise MonoMapError(f"{what}: bin edges must be finite, non-negative and non-decreasing (metres)")
+    for name, a in (("probabilities", probs), ("p_beyond", pb)):
+        bad = ~np.isfinite(a)
+        if bad.any():
+            raise MonoMapError(f"{what}: {int(bad.sum())} {name} are NaN or infinite")
+        if (a < 0).any():
+            raise MonoMapError(f"{what}: {int((a < 0).sum())} {name} are negative (min {float(a.min()):.3g})")
+    total = probs.sum(axis=1, dtype=np.float64) + pb
+    if n and total.max() > 1 + _SUM_TOL:
+        raise MonoMapError(f"{what}: {int((total > 1 + _SUM_TOL).sum())} pixels have probabilities summing "
+                           f"above 1 (max {float(total.max()):.4f}); expected bin probabilities + p_beyond <= 1")
+    return np.ascontiguousarray(probs, dtype=np.float32), pb, edges
+
+
+def apply_temperature(probs: np.ndarray, temperature: float) -> np.ndarray:
+    """p^(1/T) per pixel, rescaled to the pixel's original bin mass (T = 1: unchanged)."""
+    if temperature == 1.0:
+        return probs
+    p = np.asarray(probs, dtype=np.float64)
+    q = p ** (1.0 / temperature)
+    s = q.sum(axis=1, keepdims=True)
+    return (q * (p.sum(axis=1, keepdims=True) / np.where(s > 0, s, 1.0))).astype(np.float32)
+
+
+def narrow_bins(probs: np.ndarray, edges: np.ndarray, spread: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-bin placement of the bins' mass: (probs (N, 2K-1), per-pixel edges (N, 2K)).
+
+    A histogram says nothing about where in a bin the mass lies; the pixel's local mean (the
+    log-depth mean over the modal bin and its two neighbours) is the best sub-bin estimate. Every
+    bin's mass is spread over the central ``spread`` fraction of its log-width around its centre
+    shifted by δ = local mean − modal centre (the same δ for all bins, so the order and the gaps
+    stay), with empty gaps between. ``spread`` = 1 with δ = 0 would be the whole-bin reading.
+    """
+    p = np.asarray(probs, dtype=np.float32)
+    n, k = p.shape
+    le = np.log(np.asarray(edges, dtype=np.float64))
+    lc = 0.5 * (le[:-1] + le[1:])
+    w = le[1:] - le[:-1]
+    a = p.argmax(axis=1)
+    rows = np.arange(n)
+    num = np.zeros(n)
+    den = np.zeros(n)
+    for off in (-1, 0, 1):
+        j = np.clip(a + off, 0, k - 1)
+        ok = (a + off >= 0) & (a + off < k)
+        pj = np.where(ok, p[rows, j], 0.0)
+        num += pj * lc[j]
+        den += pj
+    delta = np.where(den > 0, num / np.where(den > 0, den, 1.0) - lc[a], 0.0)
+    lo = lc[None, :] + delta[:, None] - 0.5 * spread * w[None, :]
+    hi = lc[None, :] + delta[:, None] + 0.5 * spread * w[None, :]
+    out_edges = np.empty((n, 2 * k))
+    out_edges[:, 0::2] = np.exp(lo)
+    out_edges[:, 1::2] = np.exp(hi)
+    out_probs = np.zeros((n, 2 * k - 1), dtype=np.float32)
+    out_probs[:, 0::2] = p
+    return out_probs, out_edges
+
+
+def cdf(probs: np.ndarray, edges: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """P(surface < z) for every pixel (rows) and depth z ((N, M) or (M,) metres) — right-continuous at point masses."""
+    p = np.asarray(probs, dtype=np.float64)
+    n, k = p.shape
+    e = np.broadcast_to(np.asarray(edges, dtype=np.float64), (n, k + 1))
+    z = np.broadcast_to(np.asarray(z, dtype=np.float64), (n,) + np.shape(z)[-1:])
+    lo, hi = e[:, None, :-1], e[:, None, 1:]
+    w = hi - lo
+    zz = z[:, :, None]
+    frac = np.where(zz >= hi, 1.0, np.where((w > 0) & (zz > lo), (zz - lo) / np.where(w > 0, w, 1.0), 0.0))
+    return (p[:, None, :] * frac).sum(axis=2)
+
+
+def expected_updates(probs: np.ndarray, p_beyond: np.ndarray | None, edges: np.ndarray, z_in: np.ndarray,
+                     z_out: np.ndarray, hit: float, miss: float) -> np.ndarray:
+    """Expected OctoMap log-odds update of cells spanning depths [z_in, z_out) (metres, (N, M) or (M,))
+    along N pixels' rays: P(in)·hit + P(beyond)·miss (hit, miss: log-odds of prob_hit, prob_miss).
+    The reference formula; the frame path computes the same in the compiled kernel."""
+    probs, pb, edges = check_distribution(probs, p_beyond, edges)
+    mass = probs.sum(axis=1, dtype=np.float64)[:, None]
+    c_in, c_out = cdf(probs, edges, z_in), cdf(probs, edges, z_out)
+    return (c_out - c_in) * float(hit) + (mass - c_out + pb[:, None]) * float(miss)
+
+
+def far_depth(probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, eps: float) -> np.ndarray:
+    """(N,) depth (metres) where P(surface beyond) first falls below ``eps`` (linear within the bin); the
+    last edge if it never does (e.g. p_beyond ≥ eps). A point mass's far depth is its depth."""
+    from mono_map.mapping.raycast_c import far_depth_c, load_kernel
+
+    kernel = load_kernel()
+    if kernel is not None:
+        return far_depth_c(kernel, probs, p_beyond, edges, eps)
+    p = np.asarray(probs, dtype=np.float64)
+    n, k = p.shape
+    e = np.broadcast_to(np.asarray(edges, dtype=np.float64), (n, k + 1))
+    pb = np.asarray(p_beyond, dtype=np.float64)
+    beyond_end = p.sum(axis=1)[:, None] - np.cumsum(p, axis=1) + pb[:, None]   # P(beyond) at each bin's upper edge
+    below = beyond_end < eps
+    found = below.any(axis=1)
+    j = np.where(found, below.argmax(axis=1), k - 1)
+    rows = np.arange(n)
+    lo, hi, pj = e[rows, j], e[rows, j + 1], p[rows, j]
+    at_lo = beyond_end[rows, j] + pj        # P(beyond) at the bin's lower edge
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(pj > 0, (at_lo - eps) / pj, 0.0)
+    z = lo + (hi - lo) * np.clip(frac, 0.0, 1.0)
+    return np.where(found, z, e[:, -1])
+
+
+def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: np.ndarray, probs: np.ndarray,
+                        p_beyond: np.ndarray | None, edges: np.ndarray, resolution: float, hit: float, miss: float,
+                        max_range: float = -1.0, min_update: float = 0.0) -> CellUpdates:
+    """One frame's per-cell updates (see the module docstring).
+
+    origin: (3,) camera centre (world, metres); far_points: (N, 3) each pixel's point at its far depth
+    (world); far_depths: (N,) those depths (metres, as ``edges``); probs (N, K), p_beyond (N,) or None,
+    edges (K+1,) or (N, K+1): the distributions; hit, miss: float32 log-odds of the sensor model;
+    min_update: weaker updates are dropped.
+    """
+    from mono_map.mapping.raycast_c import load_kernel, ray_weights_c
+
+    probs, pb, edges = check_distribution(probs, p_beyond, edges)
+    kernel = load_kernel()
+    if kernel is None:
+        raise MonoMapError("--integrate distribution: needs the compiled ray kernel (a C compiler 'cc'; "
+                           "MONO_MAP_NO_C must not be 1)")
+    res = float(resolution)
+    origin32 = np.asarray(origin, dtype=np.float64).reshape(3).astype(np.float32)
+    key_origin = coord_to_key(origin32[None, :], res)[0]
+    if not key_in_range(key_origin[None, :])[0]:
+        raise MonoMapError(f"origin: {origin32.tolist()} is outside OctoMap's addressable range")
+    pts = np.asarray(far_points, dtype=np.float64).reshape(-1, 3)
+    if not np.isfinite(pts).all():
+        raise MonoMapError("points: non-finite coordinates (NaN or inf) in the frame's rays")
+    empty = CellUpdates(np.zeros((0, 3), np.int64), np.zeros(0, np.float32))
+    if len(pts) == 0:
+        return empty
+    far_keys = coord_to_key(pts, res)
+    ok = key_in_range(far_keys)
+    if not ok.all():
+        raise MonoMapError(f"points: {int((~ok).sum())} ray ends lie outside OctoMap's addressable range "
+                           f"(±{TREE_MAX_VAL * res:.0f} m at {res} m)")
+    centres = key_to_coord(far_keys, res).astype(np.float32)          # the discretised far point
+    length = norm_f32(centres - origin32[None, :])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(length > 0, np.asarray(far_depths, dtype=np.float64) / length, 0.0)
+    ends, inside = cut_at_range(centres, origin32, max_range)
+    end_keys = coord_to_key(ends, res)
+    box = KeyBox(np.minimum(end_keys.min(axis=0), key_origin), np.maximum(end_keys.max(axis=0), key_origin))
+    lin, dl = ray_weights_c(kernel, origin32, key_origin, ends, end_keys, inside, scale, probs, pb, edges,
+                            hit, miss, res, box.lo, box.strides, TREE_MAX_VAL, box.size, min_update=min_update,
+                            dense=box.size <= _DENSE_MAX_CELLS)
+    return CellUpdates(keys=box.keys(lin), dl=dl, n_rays=len(pts), lo=box.lo, hi=box.lo + box.dims - 1)

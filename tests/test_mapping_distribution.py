@@ -1,0 +1,418 @@
+"""Distribution-aware integration (``--integrate distribution``): the expected OctoMap update per cell."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mono_map.config import OctoMapConfig
+from mono_map.errors import MonoMapError
+from mono_map.eval.map_metrics import tree_leaves
+from mono_map.mapping.distribution import (check_distribution, distribution_update, expected_updates, far_depth)
+from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.points import camera_origin, pixels_to_world
+from mono_map.mapping.raycast import coord_to_key, key_to_coord
+
+K = np.array([[120.0, 0.0, 64.0], [0.0, 120.0, 24.0], [0.0, 0.0, 1.0]])
+HIT, MISS = np.float32(np.log(0.7 / 0.3)), np.float32(np.log(0.4 / 0.6))
+
+
+def pose(i: int) -> np.ndarray:
+    a = 0.15 * i
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    T[:3, 3] = [0.9 * i + 0.013, 0.31, 0.47 * i - 0.021]
+    return T
+
+
+def depth_frame(i: int, h: int = 48, w: int = 128) -> np.ndarray:
+    """A street-like depth image: a wall at 12-30 m, a box in front, the ground below the horizon."""
+    rng = np.random.default_rng(i)
+    v, u = np.mgrid[0:h, 0:w]
+    d = 12.0 + 18.0 * (u / w) + rng.normal(0, 0.05, (h, w))
+    d[(u > 40) & (u < 70) & (v > 10) & (v < 30)] = 5.0 + 0.5 * i
+    ground = v > 30
+    d[ground] = np.minimum(d[ground], 1.65 * 120.0 / (v[ground] - 24.0 + 1e-9))
+    return np.clip(d, 1.0, 80.0).astype(np.float32)
+
+
+def tree_cells(tree) -> dict:
+    leaves = tree_leaves(tree)
+    codes, leaf = leaves.expand()
+    return dict(zip(codes.tolist(), leaves.value[leaf].astype(np.float32).tolist()))
+
+
+def integrate_point_masses(integ: MapIntegrator, depth: np.ndarray, T: np.ndarray, cfg: OctoMapConfig):
+    mask = np.ones(depth.shape, bool)
+    v, u = np.nonzero(mask)
+    d = depth[v, u].astype(np.float64)
+    probs = np.ones((len(d), 1), np.float32)
+    edges = np.stack([d, d], axis=1)                    # one zero-width bin: a point mass at the depth
+    fd = far_depth(probs, np.zeros(len(d)), edges, 1e-3)
+    assert np.array_equal(fd, d)
+    upd = distribution_update(camera_origin(T), pixels_to_world(depth, mask, K, T), fd, probs, None, edges,
+                              cfg.resolution, integ.hit, integ.miss, cfg.max_range)
+    return integ.insert_updates(upd)
+
+
+@pytest.fixture(params=["1-thread", "2-threads", "pairs"])
+def weights_path(request, monkeypatch):
+    """The kernel on one thread, split over two threads (even for small frames), and the sort-combined
+    (index, update) pairs used for boxes too large for the dense buffer."""
+    from mono_map.mapping import distribution, raycast_c
+
+    monkeypatch.setenv("MONO_MAP_RAY_THREADS", "2" if request.param == "2-threads" else "1")
+    if request.param == "2-threads":
+        monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
+    if request.param == "pairs":
+        monkeypatch.setattr(distribution, "_DENSE_MAX_CELLS", 0)
+    return request.param
+
+
+@pytest.mark.parametrize("max_range", [-1.0, 15.0])
+def test_point_masses_reproduce_keep_1_bit_for_bit(max_range, weights_path):
+    cfg = OctoMapConfig(resolution=0.2, max_range=max_range)
+    keep, dist = MapIntegrator(cfg), MapIntegrator(cfg)
+    for i in range(4):
+        depth, T = depth_frame(i), pose(i)
+        a = keep.insert(pixels_to_world(depth, np.ones(depth.shape, bool), K, T), camera_origin(T))
+        b = integrate_point_masses(dist, depth, T, cfg)
+        assert len(a.keys.free) == len(b.keys.free) and len(a.keys.occupied) == len(b.keys.occupied)
+    ca, cb = tree_cells(keep.tree), tree_cells(dist.tree)
+    assert len(ca) > 10_000
+    assert ca == cb                                       # same cells, same float32 log-odds
+    assert keep.tree.memoryUsage() == dist.tree.memoryUsage()
+    assert keep.tree.getNumLeafNodes() == dist.tree.getNumLeafNodes()
+
+
+ORIGIN = np.array([0.1, 0.1, 0.05])   # on a cell centre in x and y: rays along +z stay on one cell column
+
+
+def one_ray(probs, edges, p_beyond=None, res=0.2, eps=1e-3):
+    """Cell updates of one ray along +z: (depth of the cell centres, dl, far depth, depth per metre of ray)."""
+    probs = np.asarray(probs, np.float32)[None, :]
+    edges = np.asarray(edges, np.float64)
+    pb = np.zeros(1) if p_beyond is None else np.array([p_beyond])
+    fd = far_depth(probs, pb, edges, eps)
+    far = ORIGIN + np.array([0.0, 0.0, fd[0]])
+    upd = distribution_update(ORIGIN, far[None, :], fd, probs, pb, edges, res, HIT, MISS)
+    assert (upd.keys[:, :2] == upd.keys[0, :2]).all()
+    centre_z = key_to_coord(upd.keys, res)[:, 2]
+    length = key_to_coord(coord_to_key(far[None, :], res), res)[0, 2] - ORIGIN[2]
+    scale = fd[0] / length
+    order = np.argsort(centre_z)
+    return (centre_z[order] - ORIGIN[2]) * scale, upd.dl[order], fd[0], scale
+
+
+def test_kernel_paths_agree_on_distributions(monkeypatch):
+    from mono_map.mapping import distribution, raycast_c
+
+    rng = np.random.default_rng(7)
+    edges = np.geomspace(1.0, 80.0, 33)
+    n = 3000
+    probs = rng.dirichlet(np.ones(32) * 0.2, size=n).astype(np.float32) * 0.95
+    pb = np.full(n, 0.05)
+    T = pose(1)
+    dirs = rng.normal(size=(n, 3))
+    dirs[:, 2] = np.abs(dirs[:, 2]) + 1.0
+    fd = far_depth(probs, pb, edges, 0.05)
+    far = camera_origin(T) + dirs / dirs[:, 2:3] * fd[:, None]
+
+    def run():
+        u = distribution_update(camera_origin(T), far, fd, probs, pb, edges, 0.2, HIT, MISS)
+        order = np.lexsort(u.keys.T)
+        return u.keys[order], u.dl[order]
+
+    monkeypatch.setenv("MONO_MAP_RAY_THREADS", "1")
+    k1, d1 = run()
+    monkeypatch.setenv("MONO_MAP_RAY_THREADS", "2")
+    monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
+    k2, d2 = run()
+    monkeypatch.setattr(distribution, "_DENSE_MAX_CELLS", 0)
+    k3, d3 = run()
+    assert len(k1) > 50_000 and (d1 > 0).any() and (d1 < 0).any()
+    for k, d in ((k2, d2), (k3, d3)):
+        assert np.array_equal(k, k1) and np.array_equal(d, d1)
+
+
+def test_kernel_matches_reference_formula():
+    edges = np.geomspace(1.0, 80.0, 17)
+    rng = np.random.default_rng(3)
+    p = rng.dirichlet(np.ones(16)).astype(np.float32) * 0.9
+    z, dl, fd, scale = one_ray(p, edges, p_beyond=0.1)
+    assert len(z) > 100
+    t_out = np.arange(1, len(z) + 1) * 0.2 - ORIGIN[2]            # cell faces along the ray (metres)
+    t_in = np.r_[0.0, t_out[:-1]]
+    ref = expected_updates(p[None], np.array([0.1]), edges, t_in[None] * scale, t_out[None] * scale, HIT, MISS)[0]
+    np.testing.assert_allclose(dl[:-1], ref[:-1], atol=1e-6)      # the end cell reaches past its centre
+
+
+def test_uniform_distribution_gives_no_occupancy_and_weak_updates():
+    edges = np.geomspace(1.0, 80.0, 65)
+    z, dl, _, _ = one_ray(np.full(64, 1 / 64), edges)
+    assert dl.max() < 0.01 * HIT                            # at most 1 % of a hit anywhere
+    far = z > 10.0
+    assert np.abs(dl[far]).max() < 0.5 * abs(MISS)          # beyond 10 m: under half a LiDAR miss
+    point = one_ray([1.0], [20.0, 20.0])[1]
+    assert point.max() == HIT                               # a point mass gives the full hit
+
+
+def test_two_modes_give_occupancy_at_both_and_free_space_before():
+    # two point masses: half at 10 m, half at 20 m (bins [10,10], [10,20] empty, [20,20])
+    z, dl, fd, _ = one_ray([0.5, 0.0, 0.5], [10.0, 10.0, 20.0, 20.0])
+    assert fd == 20.0
+    at10 = np.abs(z - 10.0) < 0.1
+    at20 = np.abs(z - 20.0) < 0.1
+    assert dl[at10].max() > 0 and dl[at20].max() > 0
+    assert np.isclose(dl[at10].max(), 0.5 * HIT + 0.5 * MISS, atol=1e-6)
+    assert np.isclose(dl[at20].max(), 0.5 * HIT, atol=1e-6)
+    assert (dl[z < 9.8] == MISS).all()                      # free space before the first mode
+    between = (z > 10.2) & (z < 19.8)
+    assert np.allclose(dl[between], 0.5 * MISS, atol=1e-6)  # half free between the modes
+    assert z.max() < 20.2                                   # nothing after the last mode
+
+
+def test_more_mass_in_a_cell_never_lowers_its_update():
+    edges = np.geomspace(1.0, 80.0, 33)
+    rng = np.random.default_rng(0)
+    p = rng.dirichlet(np.ones(32), size=200)
+    z_in, z_out = np.array([[7.0, 20.0]]), np.array([[7.5, 21.0]])
+    base = expected_updates(p, None, edges, z_in, z_out, HIT, MISS)
+    j = np.searchsorted(edges, 7.2) - 1                      # the bin holding the first cell
+    for src in range(32):
+        if src == j:
+            continue
+        q = p.copy()
+        moved = 0.5 * q[:, src]
+        q[:, src] -= moved
+        q[:, j] += moved                                     # mass moved into the cell's bin
+        more = expected_updates(q, None, edges, z_in, z_out, HIT, MISS)
+        assert (more[:, 0] >= base[:, 0] - 1e-12).all()
+
+
+def test_eps_truncation_bounds_the_ray():
+    edges = np.geomspace(1.0, 80.0, 65)
+    centre = np.log(10.0)
+    lc = 0.5 * (np.log(edges[1:]) + np.log(edges[:-1]))
+    p = np.exp(-0.5 * ((lc - centre) / 0.1) ** 2)
+    p /= p.sum()
+    for eps in (1e-2, 1e-4):
+        z, dl, fd, _ = one_ray(p, edges, eps=eps)
+        beyond = 1.0 - np.cumsum(p)
+        first = np.argmax(beyond < eps)
+        assert edges[first] <= fd <= edges[first + 1]
+        assert z.max() <= fd + 0.2 * np.sqrt(3)              # no cell past the far depth's cell
+    assert one_ray(p, edges, eps=1e-4)[2] > one_ray(p, edges, eps=1e-2)[2]
+    # mass beyond range (p_beyond >= eps): the ray runs to the last edge
+    _, _, fd, _ = one_ray(p * 0.5, edges, p_beyond=0.5)
+    assert fd == 80.0
+
+
+@pytest.mark.parametrize("probs, pb, match", [
+    ([[np.nan, 1.0]], None, "NaN"),
+    ([[-0.1, 1.0]], None, "negative"),
+    ([[0.7, 0.6]], None, "summing above 1"),
+    ([[0.5, 0.5]], [0.2], "summing above 1"),
+    ([[0.5, 0.5]], [-0.2], "negative"),
+])
+def test_bad_distributions_are_one_clear_error(probs, pb, match):
+    with pytest.raises(MonoMapError, match=match):
+        check_distribution(np.array(probs), None if pb is None else np.array(pb), np.array([1.0, 2.0, 3.0]))
+    with pytest.raises(MonoMapError, match=match):
+        distribution_update(np.zeros(3), np.ones((1, 3)), np.ones(1), np.array(probs),
+                            None if pb is None else np.array(pb), np.array([1.0, 2.0, 3.0]), 0.2, HIT, MISS)
+
+
+def test_bad_edges_are_one_clear_error():
+    with pytest.raises(MonoMapError, match="non-decreasing"):
+        check_distribution(np.array([[0.5, 0.5]]), None, np.array([1.0, 3.0, 2.0]))
+
+
+def test_far_depth_kernel_matches_numpy(monkeypatch):
+    edges = np.geomspace(1.0, 80.0, 33)
+    rng = np.random.default_rng(5)
+    p = (rng.dirichlet(np.ones(32) * 0.3, size=500) * rng.uniform(0.5, 1.0, (500, 1))).astype(np.float32)
+    pb = 1.0 - p.sum(axis=1, dtype=np.float64)
+    pb[::3] = 0.0
+    fast = far_depth(p, pb, edges, 0.05)
+    monkeypatch.setenv("MONO_MAP_NO_C", "1")
+    np.testing.assert_allclose(far_depth(p, pb, edges, 0.05), fast, rtol=1e-9)
+    assert (fast[pb >= 0.05] == 80.0).all()
+
+
+class WallSequence:
+    """A hand-built 'synthetic sequence': the camera looks along +z at a wall 10 m away (depth_2 = 10 m),
+    the top rows are sky (no depth)."""
+
+    name = "wall"
+
+    def __init__(self, n=2, h=48, w=128):
+        self.n, self.h, self.w = n, h, w
+        self.calib = type("Calib", (), {"K2": K})()
+        self.times = np.arange(n, dtype=float)
+        self.image_size = (h, w)
+        self.path = None
+
+    def __len__(self):
+        return self.n
+
+    def T_world_cam2(self, i):
+        T = np.eye(4)
+        T[:3, 3] = [0.0, 0.0, 0.5 * i]
+        return T
+
+    def depth(self, i):
+        d = np.full((self.h, self.w), 10.0 - 0.5 * i, np.float32)   # the wall stays at world z = 10 m
+        d[:8] = 0.0
+        return d
+
+
+def test_depth_gt_map_of_a_hand_built_wall():
+    from mono_map.mapping.build import build_map
+
+    res = build_map(WallSequence(), "depth-gt", show_progress=False)
+    leaves = tree_leaves(res.tree)
+    codes, leaf = leaves.expand()
+    from mono_map.eval.map_metrics import morton_to_keys
+
+    z = key_to_coord(morton_to_keys(codes), 0.2)[:, 2]
+    occ = leaves.occupied[leaf]
+    assert occ.sum() > 100
+    assert np.all(np.abs(z[occ] - 10.0) <= 0.2)                  # occupied exactly at the wall
+    assert (z[~occ] < 10.0).all()                                # free space in front of it only
+    assert res.stats["source"] == "depth-gt" and res.stats["points_kept"] == 2 * 40 * 128
+
+
+def test_oracle_distribution_build_with_an_observer(tiny_root):
+    """The whole build path on the oracle's distributions: observers get every frame, cells become occupied."""
+    from mono_map.data.kitti import open_sequence
+    from mono_map.mapping.build import build_map
+    from mono_map.mapping.distribution import DistributionConfig
+    from mono_map.mapping.oracle import NoisyGroundTruthPredictor
+
+    seq = open_sequence(tiny_root, "tiny")
+    seen = []
+    res = build_map(seq, "mono", frames=range(0, 2), stride=2, integrate="distribution",
+                    distribution=DistributionConfig(eps=0.1, ray_step=2),
+                    predictor=NoisyGroundTruthPredictor(sigma=0.01, edge_sigma=0.0), observers=[seen.append],
+                    show_progress=False)
+    assert len(seen) == 2 and len(seen[0].occupied_keys_changed) > 0
+    assert res.stats["integrate"] == "distribution" and res.stats["keep"] is None
+    assert res.stats["points_kept"] == sum(f["n_points"] for f in res.per_frame) > 0
+
+
+def test_heads_without_probabilities_are_one_clear_error(tiny_root):
+    from mono_map.data.kitti import open_sequence
+    from mono_map.depth.inference import DepthPrediction
+    from mono_map.mapping.build import build_map
+
+    class NoProbs:
+        def predict(self, image, with_probs=False):
+            h, w = image.shape[:2]
+            return DepthPrediction(depth=np.full((h, w), 10.0, np.float32), entropy=np.ones((h, w), np.float32))
+
+    seq = open_sequence(tiny_root, "tiny")
+    with pytest.raises(MonoMapError, match="no bin probabilities"):
+        build_map(seq, "mono", frames=range(0, 1), integrate="distribution", predictor=NoProbs(),
+                  show_progress=False)
+
+
+def test_narrow_bins_place_a_sharp_pixel_at_its_local_mean():
+    from mono_map.mapping.distribution import narrow_bins
+
+    edges = np.geomspace(1.0, 80.0, 65)
+    lc = 0.5 * (np.log(edges[1:]) + np.log(edges[:-1]))
+    p = np.zeros((1, 64), np.float32)
+    p[0, 40], p[0, 41] = 0.7, 0.3                          # a sharp pixel between two bin centres
+    q, e = narrow_bins(p, edges, 0.2)
+    check_distribution(q, None, e)                          # a valid distribution
+    local_mean = np.exp(0.7 * lc[40] + 0.3 * lc[41])
+    fd_lo = far_depth(q, np.zeros(1), e, 0.5)[0]           # the median falls in the modal bin's narrow support
+    assert abs(np.log(fd_lo / local_mean)) < 0.1 * (lc[1] - lc[0])
+    assert np.isclose(q.sum(), 1.0) and (np.diff(e[0]) >= 0).all()
+
+
+def test_p_beyond_is_mass_beyond_every_cell_and_probs_are_conditional():
+    """DepthPrediction's bin probabilities are conditional on a surface within range: the frame path
+    integrates (1 - p_beyond) · probs with p_beyond as mass beyond every cell, and skips pixels with
+    p_beyond > 1 - eps."""
+    from mono_map.depth.bins import DepthBins
+    from mono_map.depth.inference import DepthPrediction
+    from mono_map.mapping.build import bin_edges, distribution_frame
+    from mono_map.mapping.distribution import DistributionConfig
+    from mono_map.mapping.points import pixel_points_to_world
+
+    cfg = OctoMapConfig(resolution=0.2)
+    depth, T = depth_frame(0), pose(0)
+    edges = bin_edges(None)
+    bins = DepthBins()
+    assert len(edges) == bins.num_bins + 1
+    idx = np.clip(np.searchsorted(edges, depth, side="right") - 1, 0, bins.num_bins - 1)
+    probs = np.zeros((bins.num_bins,) + depth.shape, np.float32)
+    np.put_along_axis(probs, idx[None], 1.0, axis=0)                 # conditional: each pixel sums to 1
+    pb = np.full(depth.shape, 0.3, np.float32)
+    pb[:, :8] = 0.9                                                  # nothing within range: skipped at eps 0.2
+    dcfg = DistributionConfig(eps=0.2, ray_step=1, min_update=0.0)
+    valid = np.ones(depth.shape, bool)
+
+    got = MapIntegrator(cfg)
+    _, n = distribution_frame(got, DepthPrediction(depth=depth, entropy=np.zeros_like(depth), probs=probs,
+                                                   p_beyond=pb), valid, K, T, edges, dcfg, 0)
+    assert n == depth.size - 8 * depth.shape[0]
+
+    v, u = np.nonzero(pb <= 1 - dcfg.eps)
+    rows = np.moveaxis(probs, 0, -1)[v, u]
+    b = pb[v, u].astype(np.float64)
+    unconditional = (rows * (1 - b)[:, None]).astype(np.float32)
+    fd = far_depth(unconditional, b, edges, dcfg.eps)
+    ref = MapIntegrator(cfg)
+    ref.insert_updates(distribution_update(camera_origin(T), pixel_points_to_world(u, v, fd, K, T), fd, unconditional,
+                                           b, edges, cfg.resolution, ref.hit, ref.miss, cfg.max_range, 0.0))
+    got_cells, ref_cells = tree_cells(got.tree), tree_cells(ref.tree)
+    assert got_cells == ref_cells
+
+    # read as unconditional (p_beyond ignored), the same probabilities (same pixels) claim more occupancy
+    sure = MapIntegrator(cfg)
+    distribution_frame(sure, DepthPrediction(depth=depth, entropy=np.zeros_like(depth), probs=probs),
+                       pb <= 1 - dcfg.eps, K, T, edges, dcfg, 0)
+    sure_cells = tree_cells(sure.tree)
+    common = sorted(set(sure_cells) & set(got_cells))
+    assert len(common) > 1000                                       # rays to other far points: other cells too
+    diff = np.array([got_cells[c] - sure_cells[c] for c in common])
+    assert np.median(diff) <= 0 and diff.sum() < 0
+    assert sum(v > 0 for v in got_cells.values()) < sum(v > 0 for v in sure_cells.values())
+
+
+@pytest.mark.parametrize("integrate", ["keep", "distribution"])
+def test_probability_colouring_observers_get_updated_cells(tiny_root, integrate):
+    """With an observer colouring by probability, every frame's update carries the cells it updated with
+    the probability the final tree holds for them (last frame); without one, none are computed."""
+    from mono_map.data.kitti import open_sequence
+    from mono_map.mapping.build import build_map
+    from mono_map.mapping.oracle import NoisyGroundTruthPredictor
+
+    class Recorder(list):
+        def __init__(self, colour):
+            super().__init__()
+            self.colour = colour
+
+        def __call__(self, update):
+            self.append(update)
+
+    seq = open_sequence(tiny_root, "tiny")
+    prob, height = Recorder("probability"), Recorder("height")
+    res = build_map(seq, "mono", 1.0, frames=range(0, 2), stride=2, integrate=integrate,
+                    predictor=NoisyGroundTruthPredictor(sigma=0.01, edge_sigma=0.0), observers=[prob, height],
+                    show_progress=False)
+    last = prob[-1]
+    assert len(last.updated_cells) == len(last.updated_probability) > 100
+    assert ((last.updated_probability > 0.5) & (last.updated_probability < 1)).all()   # the occupied ones
+    rng = np.random.default_rng(0)
+    for j in rng.choice(len(last.updated_cells), 50, replace=False):
+        node = res.tree.search(last.updated_cells[j])
+        assert abs(node.getOccupancy() - last.updated_probability[j]) < 1e-5
+    assert height[-1] is last                                       # one update object for every observer
+    alone = Recorder("height")
+    build_map(seq, "mono", 1.0, frames=range(0, 1), stride=2, integrate=integrate, observers=[alone],
+              predictor=NoisyGroundTruthPredictor(sigma=0.01, edge_sigma=0.0), show_progress=False)
+    assert alone[0].updated_cells is None and alone[0].updated_probability is None

@@ -1,0 +1,156 @@
+#!/usr/bin/env python3
+"""Keep sweep against distribution integration in ONE pass over the frames (each frame predicted once).
+
+Tuning (on a training town, never on 00) — a grid of distribution settings:
+
+    .venv/bin/python tools/compare_integrations.py --seq 05 --frames 0:60 --model shipped --tune
+
+Measuring (any sequence) — the chosen settings (the DistributionConfig defaults unless given):
+
+    .venv/bin/python tools/compare_integrations.py --seq 00 --frames 0:500 --model shipped --out DIR
+
+Every candidate gets its own integrator fed from the same predictions; each map is scored exactly as
+``mono-map eval --table`` scores it (the same metric functions on the same trees: accuracy, coverage,
+acc. on covered cells and occupied P/R/F1 against the LiDAR-FOV map, surface precision against the
+depth-gt map, ECE of the probabilistic tree, OctoMap memoryUsage), but ``eval --table`` would predict
+every frame once per map. LiDAR-FOV and depth-gt maps are read from ``--refs DIR`` when built there
+(``mono-map build --source lidar-fov|depth-gt --out DIR``), else built. With ``--out``: Markdown, JSON,
+the accuracy-vs-memory plot and the reliability diagram (:mod:`mono_map.mapping.table`'s plots).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mono_map.config import OctoMapConfig  # noqa: E402
+from mono_map.data.kitti import open_sequence  # noqa: E402
+from mono_map.eval.map_metrics import calibration, compare_leaves, load_tree, surface_precision, tree_leaves  # noqa: E402
+from mono_map.frames import frames_tag, parse_frames  # noqa: E402
+from mono_map.mapping.build import bin_edges, build_map, distribution_frame, load_predictor  # noqa: E402
+from mono_map.mapping.build import run_predictor  # noqa: E402
+from mono_map.mapping.jobs import map_stem  # noqa: E402
+from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
+from mono_map.mapping.integrate import MapIntegrator  # noqa: E402
+from mono_map.mapping.points import camera_origin, pixels_to_world  # noqa: E402
+from mono_map.mapping.select import select_pixels  # noqa: E402
+
+
+def reference_leaves(seq, source: str, frames, cfg, refs: Path | None):
+    stem = map_stem(source, 1.0, cfg, frames_tag(frames), 1, None)
+    if refs is not None and (refs / f"{stem}.bt").exists():
+        return tree_leaves(load_tree(refs / f"{stem}.bt"))
+    return tree_leaves(build_map(seq, source, frames=frames, octomap=cfg, show_progress=False).tree)
+
+
+def main(argv=None) -> int:
+    d = DistributionConfig()
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seq", default="05")
+    p.add_argument("--frames", default="0:60")
+    p.add_argument("--model", default="shipped", help="'shipped', 'oracle' or a checkpoint")
+    p.add_argument("--data-root", default=None)
+    p.add_argument("--keeps", default="0.8,1.0")
+    p.add_argument("--tune", action="store_true", help="a grid: --eps x --min-update x --ray-step x --temperature")
+    p.add_argument("--eps", default=str(d.eps))
+    p.add_argument("--min-update", default=str(d.min_update))
+    p.add_argument("--ray-step", default=str(d.ray_step))
+    p.add_argument("--temperature", default=str(d.temperature))
+    p.add_argument("--bin-spread", default=str(d.bin_spread))
+    p.add_argument("--prob-hit", type=float, default=0.7)
+    p.add_argument("--prob-miss", type=float, default=0.4)
+    p.add_argument("--refs", default=None, help="directory with built lidar-fov / depth-gt maps of these frames")
+    p.add_argument("--out", default=None, help="write Markdown, JSON and plots here")
+    args = p.parse_args(argv)
+    if args.tune and args.seq == "00":
+        raise SystemExit("tune on a training town, never on 00")
+    cfg = OctoMapConfig(prob_hit=args.prob_hit, prob_miss=args.prob_miss)
+    selection = parse_frames(args.frames)
+    seq = open_sequence(args.data_root, args.seq)
+    frames = selection.resolve(len(seq))
+    desc = selection.describe(frames)
+    refs = Path(args.refs) if args.refs else None
+    print(f"sequence {args.seq}, {desc}, model {args.model}, prob_hit {cfg.prob_hit}, prob_miss {cfg.prob_miss}",
+          flush=True)
+    ref = reference_leaves(seq, "lidar-fov", frames, OctoMapConfig(), refs)    # references: default sensor model
+    surf = reference_leaves(seq, "depth-gt", frames, OctoMapConfig(), refs)
+    predictor = load_predictor(None if args.model == "shipped" else args.model)
+    edges = bin_edges(predictor)
+    grid = [DistributionConfig(eps=float(e), min_update=float(m), ray_step=int(s), temperature=float(t),
+                               bin_spread=float(b))
+            for e, m, s, t, b in itertools.product(args.eps.split(","), args.min_update.split(","),
+                                                   args.ray_step.split(","), args.temperature.split(","),
+                                                   args.bin_spread.split(","))]
+    cands = {}
+    for k in sorted({float(k) for k in args.keeps.split(",")}, reverse=True):
+        cands["mono (keep 1.0)" if k == 1.0 else f"mono keep {k:g}"] = (k, MapIntegrator(cfg), [0.0])
+    for g in grid:
+        name = "mono, distribution" if len(grid) == 1 else (
+            f"dist eps {g.eps:g} min {g.min_update:g} step {g.ray_step} T {g.temperature:g} spread {g.bin_spread:g}")
+        cands[name] = (g, MapIntegrator(cfg), [0.0])
+    K = seq.calib.K2
+    t_start = time.perf_counter()
+    for n, i in enumerate(frames, start=1):
+        pred = run_predictor(predictor, seq, i, seq.image(i), with_probs=True)
+        T = seq.T_world_cam2(i)
+        for c, integ, sec in cands.values():
+            t0 = time.perf_counter()
+            if isinstance(c, float):
+                mask = select_pixels(pred.depth, pred.entropy, c, 1.0, 80.0, p_beyond=pred.p_beyond)
+                integ.insert(pixels_to_world(pred.depth, mask, K, T), camera_origin(T))
+            else:
+                _, valid = select_pixels(pred.depth, pred.entropy, 1.0, 1.0, 80.0, return_valid=True)
+                distribution_frame(integ, pred, valid, K, T, edges, c, i)
+            sec[0] += time.perf_counter() - t0
+        if n % 50 == 0:
+            print(f"  {n}/{len(frames)} frames, {time.perf_counter() - t_start:.0f} s", flush=True)
+    rows, reliability = [], {}
+    for name, (c, integ, sec) in cands.items():
+        tree = integ.tree
+        leaves = tree_leaves(tree)
+        m = compare_leaves(leaves, ref)
+        s = surface_precision(leaves, surf)
+        e = calibration(leaves, ref)
+        reliability[name] = e
+        rows.append({"method": name, "source": "mono" if isinstance(c, float) else "mono-distribution",
+                     "keep": c if isinstance(c, float) else None,
+                     "settings": None if isinstance(c, float) else c.__dict__,
+                     "accuracy": m["accuracy"], "coverage": m["coverage"], "accuracy_covered": m["accuracy_covered"],
+                     "precision": m["precision"], "recall": m["recall"], "f1": m["f1"],
+                     "surface_precision": s["surface_precision"], "occupied_cells": s["occupied_cells"],
+                     "ece": e["ece"], "memory_mb": tree.memoryUsage() / 2**20, "leaf_count": tree.getNumLeafNodes(),
+                     "integration_s_per_frame": sec[0] / len(frames)})
+    lines = ["| map | acc. (%) | cov. (%) | acc. covered (%) | occ. P / R / F1 (%) | surface prec. (%) | occupied cells | "
+             "ECE | memory (MB) | integration s/frame |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['method']} | {100 * r['accuracy']:.1f} | {100 * r['coverage']:.1f} | "
+                     f"{100 * r['accuracy_covered']:.1f} | {100 * r['precision']:.1f} / {100 * r['recall']:.1f} / "
+                     f"{100 * r['f1']:.1f} | {100 * r['surface_precision']:.1f} | {r['occupied_cells']:,} | "
+                     f"{r['ece']:.3f} | {r['memory_mb']:.1f} | {r['integration_s_per_frame']:.2f} |")
+    md = "\n".join(lines) + "\n"
+    print(md)
+    if args.out:
+        from mono_map.io import write_json_atomic, write_text_atomic
+        from mono_map.viz.plots import plot_accuracy_memory, plot_reliability
+
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        stem = f"compare_{args.seq}_{frames_tag(frames)}_{Path(args.model).stem}"
+        write_text_atomic(out / f"{stem}.md", md)
+        write_json_atomic(out / f"{stem}.json", {"sequence": args.seq, "frames": [frames[0], frames[-1] + 1],
+                                                 "model": args.model, "rows": rows, "reliability": reliability})
+        plot_accuracy_memory(rows, out / f"{stem}_acc_memory.png")
+        calib = {k: v for k, v in reliability.items() if k in ("mono (keep 1.0)", "mono keep 0.8", "mono, distribution")}
+        plot_reliability(calib, out / f"{stem}_reliability.png")
+        print(f"wrote {out / stem}.md, .json, _acc_memory.png, _reliability.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
