@@ -72,11 +72,16 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
         for tmp in temps:
             tmp.unlink(missing_ok=True)
         if not published:
-            for d in reversed(created):
-                try:
-                    d.rmdir()
-                except OSError:
-                    pass
+            _remove_empty_dirs(created)
+
+
+def _remove_empty_dirs(created: list[Path]) -> None:
+    """Remove the folders a failed publication made (innermost first), where they are still empty."""
+    for d in reversed(created):
+        try:
+            d.rmdir()
+        except OSError:
+            pass
 
 
 @contextlib.contextmanager
@@ -100,11 +105,7 @@ def staged_dir(out: str | os.PathLike) -> Iterator[Path]:
     finally:
         shutil.rmtree(stage, ignore_errors=True)
         if not published:
-            for d in reversed(created):
-                try:
-                    d.rmdir()
-                except OSError:
-                    pass
+            _remove_empty_dirs(created)
 
 
 @contextlib.contextmanager

@@ -506,7 +506,13 @@ def test_sigint_during_eval_table_leaves_no_outputs(ctx):
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130 and "Traceback" not in err
     assert err.strip().splitlines()[-1] == "mono-map: interrupted"
-    assert not list(ctx.out.iterdir())
+    # maps finished before the signal stay as a cache (each published whole, .bt with its .json);
+    # nothing half-written, no temporaries, and no table
+    left = list(ctx.out.iterdir())
+    assert not [p for p in left if p.name.startswith(".")]
+    assert all(bt.with_suffix(".json").is_file() for bt in ctx.out.glob("*.bt"))
+    assert len(list(ctx.out.glob("*.json"))) == len(list(ctx.out.glob("*.bt")))
+    assert not list(ctx.out.glob("table_*"))
 
 
 def test_res_too_fine_under_a_memory_limit_is_refused_with_the_estimate(ctx):
