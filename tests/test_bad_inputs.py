@@ -461,10 +461,9 @@ SLOW_BUILD = ["build", "--seq", "tiny", "--frames", "0:6", "--res", "0.1", "--so
                                              (signal.SIGKILL, -9, None)])
 def test_signal_during_build_leaves_no_outputs(ctx, sig, code, said):
     proc = start(SLOW_BUILD + ["--data-root", str(ctx.data), "--out", str(ctx.out), "--rrd", str(ctx.out / "m.rrd")])
-    wait_for(proc, "stdout", "mono-map build:")
-    time.sleep(1.0)
-    proc.send_signal(sig)
-    _, err = proc.communicate(timeout=120)
+    wait_for(proc, "stdout", "mono-map build:")   # printed once every check passed, before the first frame:
+    proc.send_signal(sig)                          # no sleep, so a fast machine cannot finish the build first
+    _, err = proc.communicate(timeout=300)
     assert proc.returncode == code, err
     assert "Traceback" not in err
     if said:
@@ -483,9 +482,12 @@ def test_signals_during_synth_then_resume(tmp_path):
     root = tmp_path / "kitti"
     proc = start(["synth", "--seq", "tiny", "--data-root", str(root), "--workers", "2"])
     wait_for(proc, "stderr", "rendering")
-    time.sleep(2.0)
+    images = root / SEQ / "image_2"
+    deadline = time.monotonic() + 120         # signal once the workers are rendering (the first frame is
+    while time.monotonic() < deadline and not any(images.glob("[0-9]*.png")):   # written), not before
+        time.sleep(0.02)
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
+    _, err = proc.communicate(timeout=300)
     assert proc.returncode == 143 and "Traceback" not in err
     assert err.strip().splitlines()[-1] == "mono-map: terminated"
     seq = root / SEQ
@@ -500,10 +502,9 @@ def test_signals_during_synth_then_resume(tmp_path):
 def test_sigint_during_eval_table_leaves_no_outputs(ctx):
     proc = start(["eval", "--table", "--seq", "tiny", "--data-root", str(ctx.data), "--out", str(ctx.out),
                   "--frames", "0:6", "--res", "0.1", "--model", "oracle", "--keeps", "1.0"])
-    wait_for(proc, "stdout", "mono-map eval --table")
-    time.sleep(1.5)
+    wait_for(proc, "stdout", "mono-map eval --table")   # before the first map is built
     proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
+    _, err = proc.communicate(timeout=300)
     assert proc.returncode == 130 and "Traceback" not in err
     assert err.strip().splitlines()[-1] == "mono-map: interrupted"
     # maps finished before the signal stay as a cache (each published whole, .bt with its .json);
