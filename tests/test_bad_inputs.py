@@ -435,9 +435,15 @@ def cli_env() -> dict:
     return dict(os.environ, PYTHONPATH=str(REPO), MONO_MAP_PROGRESS="0", OMP_NUM_THREADS="1")
 
 
+def _default_sigint() -> None:
+    # a test run started in the background (nohup, `cmd &` without job control) inherits SIGINT ignored,
+    # and Python then installs no KeyboardInterrupt handler: give the child the default disposition
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start(argv: list[str]) -> subprocess.Popen:
     return subprocess.Popen(PY + argv, cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=_default_sigint)
 
 
 def wait_for(proc: subprocess.Popen, stream: str, text: str, timeout: float = 120.0) -> None:
