@@ -28,6 +28,12 @@ C_SOURCE = r"""
 
 /* computeRayKeys' set-up for the ray origin -> e: steps, tMax, tDelta (OctoMap's types); returns the
    float length |e - origin|. */
+/* linear index of key k in the box whose low corner is lo */
+static inline int64_t box_index(const int64_t *k, const int64_t *lo, const int64_t *strides)
+{
+    return (k[0] - lo[0]) * strides[0] + (k[1] - lo[1]) * strides[1] + (k[2] - lo[2]) * strides[2];
+}
+
 static inline float dda_setup(const float *origin, const float *e, const int64_t *key_origin, double res,
                               int64_t tree_max_val, int *step, double *tMax, double *tDelta)
 {
@@ -76,8 +82,7 @@ int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float
                      uint8_t *mark, int64_t mark_size)
 {
     int64_t off = 0;
-    const int64_t lin_o = (key_origin[0] - lo[0]) * strides[0] + (key_origin[1] - lo[1]) * strides[1]
-                          + (key_origin[2] - lo[2]) * strides[2];
+    const int64_t lin_o = box_index(key_origin, lo, strides);
     for (int64_t i = 0; i < n; ++i) {
         const float *e = ends + 3 * i;
         const int64_t *ke = key_ends + 3 * i;
@@ -161,8 +166,7 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
                        int64_t cap)
 {
     int64_t off = 0;
-    const int64_t lin_o = (key_origin[0] - lo[0]) * strides[0] + (key_origin[1] - lo[1]) * strides[1]
-                          + (key_origin[2] - lo[2]) * strides[2];
+    const int64_t lin_o = box_index(key_origin, lo, strides);
     for (int64_t i = 0; i < n; ++i) {
         const float *e = ends + 3 * i;
         const int64_t *ke = key_ends + 3 * i;
