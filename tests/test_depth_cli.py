@@ -52,3 +52,18 @@ def test_eval_depth_on_real_object_frames(tmp_path, tiny_ckpt, kitti_real):
     assert res["hypotheses"]["5"]["abs_rel"] <= res["hypotheses"]["1"]["abs_rel"]
     assert (out / "sparsification_object.png").stat().st_size > 1000
     assert main(["eval-depth", "--kitti-object", str(tmp_path), "--model", str(tiny_ckpt)]) == 2
+
+
+def test_eval_depth_rows_are_named_by_their_training_runs(tmp_path, kitti_real):
+    """Two runs of one head (e.g. the bin-count ablation) are two rows named by their runs, in one table."""
+    torch.manual_seed(0)
+    a, b = tmp_path / "a.pt", tmp_path / "b.pt"
+    save_checkpoint(a, DepthNet(named_config("small", **TINY)), {"name": "v2-binary"})
+    save_checkpoint(b, DepthNet(named_config("small", **{**TINY, "num_bins": 8})), {"name": "v2-binary-k8"})
+    out = tmp_path / "ev"
+    assert main(["eval-depth", "--kitti-object", str(kitti_real / "object" / "training"), "--model", str(a),
+                 "--model", str(b), "--out", str(out), "--threads", "1"]) == 0
+    res = json.loads((out / "depth_object.json").read_text())["results"]
+    assert set(res) == {"v2-binary", "v2-binary-k8"}
+    md = (out / "depth_object.md").read_text()
+    assert "v2-binary-k8" in md and "v2-binary " in md.replace("|", " ")

@@ -193,7 +193,8 @@ def run_eval_depth(args) -> int:
     predictors = {}
     for m in _models(args):
         p = DepthPredictor.load(m, fast=args.fast)
-        key = m if m in SHIPPED_HEADS else (p.head if p.head not in predictors else f"{p.head} ({m})")
+        key = m if m in SHIPPED_HEADS else p.training.get("name") or p.head   # the run's name (e.g. v2-binary-k32)
+        key = key if key not in predictors else f"{key} ({m})"
         predictors[key] = p
     if args.kitti_object:
         frames = object_frames(args.kitti_object)
