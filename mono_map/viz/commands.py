@@ -81,20 +81,42 @@ def screenshot(rrd: Path, png: Path, frame: int | None = None, timeout: float = 
         if shutil.which("xvfb-run") is None:
             raise MonoMapError(f"--screenshot: {png}: the headless viewer did not finish painting in time "
                                f"(software rendering on a busy machine?) and xvfb-run is not installed") from None
-        _screenshot_xvfb(rrd, png, timeout)
+        screenshot_xvfb(rrd, png, timeout)
 
 
-def _screenshot_xvfb(rrd: Path, png: Path, timeout: float) -> None:
+def screenshot_xvfb(rrd: Path, png: Path, timeout: float) -> None:
     from mono_map.io import atomic_path
 
     env = dict(os.environ, XDG_RUNTIME_DIR=os.environ.get("XDG_RUNTIME_DIR", "/tmp"))
     with atomic_path(png) as tmp:
         cmd = ["xvfb-run", "-a", "-s", "-screen 0 1600x900x24", rerun_binary(), "--port", str(_free_port()),
                "--window-size", "1600x900", "--screenshot-to", str(tmp), str(rrd)]
-        proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=timeout,
-                              text=True)
+        # own process group: on a timeout xvfb-run, Xvfb and the viewer all go (killing xvfb-run alone
+        # leaves the other two running)
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                start_new_session=True)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            kill_group(proc)
+            raise MonoMapError(f"--screenshot: {png}: the viewer did not finish within {timeout:.0f} s "
+                               "(software rendering on a busy machine?)") from None
+        except BaseException:
+            kill_group(proc)
+            raise
         if proc.returncode != 0 or not tmp.exists() or tmp.stat().st_size == 0:
             raise MonoMapError(f"--screenshot: {png}: the viewer could not render a picture")
+
+
+def kill_group(proc: subprocess.Popen) -> None:
+    """SIGKILL a child started with ``start_new_session=True`` and everything it started; reap it."""
+    import signal
+
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait()
 
 
 def _screenshot_headless(rrd: Path, png: Path, frame: int | None = None, timeout: float = 300.0) -> None:
