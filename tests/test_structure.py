@@ -20,19 +20,13 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "mono_map"
 
 # Import cycles (strongly connected modules) still present, owner in the comment.
-KNOWN_CYCLES: set[frozenset[str]] = {
-    # issue 13 octree row (mapping/octree.py planned; lazy import in octree_from_cells)
-    frozenset({"mono_map.mapping.integrate", "mono_map.mapping.octree_io"}),
-}
+KNOWN_CYCLES: set[frozenset[str]] = set()
 
 # (file, line text) of private imports still present, owner in the comment.
 KNOWN_PRIVATE: set[tuple[str, str]] = {
     # issue 13 data row (synth camera/LiDAR ray casting helper)
     ("mono_map/data/synth/lidar.py", "from mono_map.data.synth.camera import _cast"),
     ("tests/test_synth.py", "from mono_map.data.synth.camera import _cast"),
-    # issue 13 octree row (Morton codes in mapping/octree.py)
-    ("mono_map/eval/map_metrics.py", "from mono_map.mapping.raycast import TREE_MAX_VAL, _spread_bits"),
-    ("mono_map/mapping/octree_io.py", "from mono_map.mapping.raycast import _spread_bits"),
 }
 
 

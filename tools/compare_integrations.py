@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import sys
 import time
 from pathlib import Path
@@ -31,13 +30,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
-from mono_map.eval.map_metrics import calibration, compare_leaves, load_tree, surface_precision, tree_leaves  # noqa: E402
+from mono_map.eval.map_metrics import calibration, compare_leaves, surface_precision  # noqa: E402
 from mono_map.frames import frames_tag, parse_frames  # noqa: E402
 from mono_map.mapping.build import bin_edges, build_map, distribution_frame, load_predictor  # noqa: E402
 from mono_map.mapping.build import run_predictor  # noqa: E402
 from mono_map.mapping.jobs import map_stem  # noqa: E402
 from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.integrate import MapIntegrator  # noqa: E402
+from mono_map.mapping.octree import load_tree, tree_leaves  # noqa: E402
 from mono_map.mapping.points import camera_origin, pixels_to_world  # noqa: E402
 from mono_map.mapping.select import select_pixels  # noqa: E402
 

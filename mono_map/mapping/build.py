@@ -27,6 +27,7 @@ from mono_map.mapping.distribution import (INTEGRATIONS, DistributionConfig, app
                                            check_distribution_config, distribution_update, far_depth,
                                            narrow_bins)
 from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.octree import key_to_coord
 from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
 from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
 from mono_map.mapping.select import check_keep, select_pixels, valid_pixels
@@ -61,8 +62,6 @@ def updated_cell_probabilities(integrator: MapIntegrator, res) -> tuple[np.ndarr
     """(centres (M, 3) metres, occupancy probabilities (M,) float32) of the cells a frame updated
     (``res``: its FrameIntegration) that are occupied after it, read from the integrator's log-odds
     mirror (cells that stopped being occupied are ``freed_keys_changed``)."""
-    from mono_map.mapping.raycast import key_to_coord
-
     keys = np.concatenate([res.keys.free, res.keys.occupied]).astype(np.int64)
     logodds = integrator.mirror.get(keys)
     occ = logodds > integrator.occ_thres
@@ -301,21 +300,3 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
     }
     return BuildResult(tree=tree, stats=stats, per_frame=per_frame, integrator=integrator)
 
-
-def write_tree_bt(tree, path) -> None:
-    """Write the max-likelihood binary tree (.bt) atomically. Note: OctoMap's writeBinary converts
-    the tree in memory to max-likelihood and prunes it."""
-    from mono_map.io import atomic_path
-
-    with atomic_path(path, suffix=".bt") as tmp:
-        if not tree.writeBinary(str(tmp).encode()):
-            raise MonoMapError(f"{path}: OctoMap could not write the tree")
-
-
-def write_tree_ot(tree, path) -> None:
-    """Write the probabilistic tree (.ot: every node's log-odds) atomically."""
-    from mono_map.io import atomic_path
-
-    with atomic_path(path, suffix=".ot") as tmp:
-        if not tree.write(str(tmp).encode()):
-            raise MonoMapError(f"{path}: OctoMap could not write the tree")

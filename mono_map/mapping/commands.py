@@ -118,7 +118,7 @@ def octomap_config(args):
 
     from mono_map.config import OctoMapConfig
     from mono_map.errors import MonoMapError
-    from mono_map.mapping.integrate import validate_octomap_config
+    from mono_map.mapping.octree import validate_octomap_config
 
     if args.max_range is not None and not (math.isfinite(args.max_range) and args.max_range > 0):
         raise MonoMapError(f"--max-range: must be a positive number of metres, got {args.max_range} "
@@ -313,7 +313,8 @@ def run_eval(args) -> int:
                                   octomap=cfg, reference=args.reference, paper_only=args.paper_only,
                                   distribution=dcfg))
     from mono_map.data.prepare import prepare_sequence
-    from mono_map.eval.map_metrics import evaluate_map, load_tree
+    from mono_map.eval.map_metrics import evaluate_map
+    from mono_map.mapping.octree import load_tree
     from mono_map.io import write_json_atomic
 
     map_path = Path(args.map) if args.map else default_map_path(args, cfg, dcfg, selection)

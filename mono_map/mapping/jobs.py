@@ -265,7 +265,8 @@ def build_and_write(seq, source: str, keep: float, cfg, frames, stride: int, mod
     from mono_map.errors import MonoMapError
     from mono_map.frames import frames_tag
     from mono_map.io import atomic_outputs, quiet_native_output, write_json_atomic
-    from mono_map.mapping.build import build_map, load_predictor, write_tree_bt, write_tree_ot
+    from mono_map.mapping.build import build_map, load_predictor
+    from mono_map.mapping.octree import write_tree_bt, write_tree_ot
 
     frames = list(frames)
     job = job_key(seq, source, keep, cfg, frames, stride, model, digest, integrate, dcfg)

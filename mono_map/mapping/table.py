@@ -64,11 +64,12 @@ def _cached(bt: Path, job: dict, build, need_ot: bool = False):
 
 def run_table(job: TableJob) -> int:
     from mono_map.data.prepare import prepare_sequence
-    from mono_map.eval.map_metrics import calibration, compare_leaves, load_tree, surface_precision, tree_leaves, tree_summary
+    from mono_map.eval.map_metrics import calibration, compare_leaves, surface_precision, tree_summary
     from mono_map.frames import frames_tag
     from mono_map.io import write_json_atomic, write_text_atomic
     from mono_map.mapping.build import load_predictor
     from mono_map.mapping.jobs import build_and_write, job_key, map_stem, model_digest
+    from mono_map.mapping.octree import load_tree, tree_leaves
 
     cfg = job.octomap
     dcfg = job.distribution
