@@ -32,10 +32,6 @@ KNOWN_PRIVATE: set[tuple[str, str]] = {
 
 # Imports against the one-way flow (see LAYERS) still present, owner in the comment.
 KNOWN_UPWARD: set[tuple[str, str]] = {
-    # depth/evaluate.py drives the depth evaluation from depth/ (lead, depth row)
-    ("mono_map.depth.evaluate", "mono_map.eval.depth_metrics"),
-    ("mono_map.depth.evaluate", "mono_map.eval.hypotheses"),
-    ("mono_map.depth.evaluate", "mono_map.eval.sparsification"),
     # mapping/table.py is a command living in mapping/ (issue 13 map-pipeline row)
     ("mono_map.mapping.table", "mono_map.eval.map_metrics"),
     ("mono_map.mapping.table", "mono_map.viz.plots"),
