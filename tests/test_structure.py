@@ -31,11 +31,7 @@ KNOWN_PRIVATE: set[tuple[str, str]] = {
 
 
 # Imports against the one-way flow (see LAYERS) still present, owner in the comment.
-KNOWN_UPWARD: set[tuple[str, str]] = {
-    # mapping/table.py is a command living in mapping/ (issue 13 map-pipeline row)
-    ("mono_map.mapping.table", "mono_map.eval.map_metrics"),
-    ("mono_map.mapping.table", "mono_map.viz.plots"),
-}
+KNOWN_UPWARD: set[tuple[str, str]] = set()
 
 
 def layer(module: str) -> int:

@@ -34,7 +34,7 @@ from mono_map.eval.map_metrics import calibration, compare_leaves, surface_preci
 from mono_map.frames import frames_tag, parse_frames  # noqa: E402
 from mono_map.mapping.build import bin_edges, build_map, distribution_frame, load_predictor  # noqa: E402
 from mono_map.mapping.build import run_predictor  # noqa: E402
-from mono_map.mapping.jobs import map_stem  # noqa: E402
+from mono_map.mapping.jobs import MapJob  # noqa: E402
 from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.integrate import MapIntegrator  # noqa: E402
 from mono_map.mapping.octree import load_tree, tree_leaves  # noqa: E402
@@ -43,9 +43,9 @@ from mono_map.mapping.select import select_pixels  # noqa: E402
 
 
 def reference_leaves(seq, source: str, frames, cfg, refs: Path | None):
-    stem = map_stem(source, 1.0, cfg, frames_tag(frames), 1, None)
-    if refs is not None and (refs / f"{stem}.bt").exists():
-        return tree_leaves(load_tree(refs / f"{stem}.bt"))
+    bt = MapJob(seq.name, None, source, tuple(frames), octomap=cfg).path(refs) if refs is not None else None
+    if bt is not None and bt.exists():
+        return tree_leaves(load_tree(bt))
     return tree_leaves(build_map(seq, source, frames=frames, octomap=cfg, show_progress=False).tree)
 
 
