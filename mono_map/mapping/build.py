@@ -30,7 +30,7 @@ from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.octree import key_to_coord
 from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
 from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
-from mono_map.mapping.select import check_keep, select_pixels, valid_pixels
+from mono_map.mapping.select import DEFAULT_KEEP, check_keep, select_pixels, valid_pixels
 
 SOURCES = ("mono", "depth-gt") + LIDAR_SOURCES
 
@@ -302,7 +302,7 @@ class MapBuilder:
                            integrator=self.integrator)
 
 
-def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[int] | None = None,
+def build_map(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, frames: Sequence[int] | None = None,
               octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None,
               model: str | None = None, depth_range: tuple[float, float] | None = None,
               observers: Sequence[Callable] = (), stats_every: int = 100, method: str = "batched",

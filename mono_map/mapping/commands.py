@@ -8,6 +8,7 @@ from pathlib import Path
 from mono_map.io import prepare_output_dir
 from mono_map.mapping.jobs import (RRD_MIN_FREE, MapJob, build_and_write, check_memory, checkpoint_path,
                                    model_digest, read_map_sidecar, reusable)
+from mono_map.mapping.select import DEFAULT_KEEP
 from mono_map.paths import sequence_output_dir
 
 
@@ -63,7 +64,8 @@ def register(subparsers) -> None:
                     "with the lowest predicted entropy, back-project them and ray-cast them into the map "
                     "(or use the LiDAR scans). Writes <out>/<name>.bt and <out>/<name>.json atomically.")
     b.add_argument("--seq", required=True, help="sequence name, e.g. 00")
-    b.add_argument("--keep", type=float, default=0.8, help="fraction of valid pixels kept per frame, in (0, 1] (default 0.8)")
+    b.add_argument("--keep", type=float, default=DEFAULT_KEEP,
+                   help=f"fraction of valid pixels kept per frame, in (0, 1] (default {DEFAULT_KEEP:g})")
     b.add_argument("--source", default="mono", help="mono | depth-gt | lidar | lidar-fov (default mono); depth-gt: "
                    "the synthetic ground-truth depth_2 back-projected like a keep-1.0 mono map (upper bound)")
     _add_integration_args(b)
@@ -90,7 +92,8 @@ def register(subparsers) -> None:
                     "whatever is missing and print LiDAR-FOV, mono, mono keep 0.8 and a keep sweep.")
     e.add_argument("--map", default=None,
                    help="map to score (.bt); default: the map `mono-map build --seq SEQ --keep KEEP` wrote under --out")
-    e.add_argument("--keep", type=float, default=0.8, help="with no --map: the keep of that default map (default 0.8)")
+    e.add_argument("--keep", type=float, default=DEFAULT_KEEP,
+                   help=f"with no --map: the keep of that default map (default {DEFAULT_KEEP:g})")
     e.add_argument("--reference", default="lidar-fov", help="lidar-fov | lidar | path to a .bt (default lidar-fov); "
                    "with --table: lidar-fov, or lidar (the whole 360° LiDAR map, LiDAR-FOV then a scored row)")
     e.add_argument("--seq", default="00", help="sequence for a built reference / the table (default 00)")
