@@ -31,11 +31,11 @@ def run(args: argparse.Namespace) -> int:
 
     from mono_map.config import OctoMapConfig
     from mono_map.data.prepare import check_data_root, prepare_sequence
+    from mono_map.eval.table import TableJob
     from mono_map.frames import first_frames, frames_tag, parse_frames
     from mono_map.mapping.build import load_predictor
-    from mono_map.mapping.commands import DEFAULT_FRAMES
-    from mono_map.mapping.jobs import build_and_write, job_key, map_stem, model_digest, reusable
-    from mono_map.mapping.table import TableJob, run_table
+    from mono_map.mapping.commands import DEFAULT_FRAMES, run_table
+    from mono_map.mapping.jobs import MapJob, build_and_write, model_digest, reusable
     from mono_map.viz.rerun_stream import RerunMapLogger
 
     t0 = time.perf_counter()
@@ -52,14 +52,15 @@ def run(args: argparse.Namespace) -> int:
     tag = frames_tag(frames)
 
     # 1. the LiDAR-FOV reference, built first so the recording can show it beside the growing map
-    ref_bt = out_dir / f"{map_stem('lidar-fov', 1.0, cfg, tag, 1, None)}.bt"
-    if not reusable(ref_bt, job_key(seq, "lidar-fov", 1.0, cfg, frames, 1, None))[0]:
+    ref_job = MapJob.of(seq, "lidar-fov", frames, octomap=cfg)
+    ref_bt = ref_job.path(out_dir)
+    if not reusable(ref_bt, ref_job)[0]:
         print("[1/3] LiDAR-FOV reference map", flush=True)
-        build_and_write(seq, "lidar-fov", 1.0, cfg, frames, 1, None, out_dir)
+        build_and_write(ref_job, seq, out_dir)
     # 2. the uncertainty-aware monocular map, streamed to a rerun recording while it grows
     rrd = out_dir / f"demo_mono-keep0.8_{tag}.rrd"
-    keep_bt = out_dir / f"{map_stem('mono', 0.8, cfg, tag, 1, None)}.bt"
-    if not reusable(keep_bt, job_key(seq, "mono", 0.8, cfg, frames, 1, None, digest))[0] or not rrd.exists():
+    keep_job = MapJob.of(seq, "mono", frames, keep=0.8, octomap=cfg, digest=digest)
+    if not reusable(keep_job.path(out_dir), keep_job)[0] or not rrd.exists():
         print(f"[2/3] monocular map, keep 0.8, recorded to {rrd}", flush=True)
 
         def logger(path):
@@ -68,8 +69,7 @@ def run(args: argparse.Namespace) -> int:
             return RerunMapLogger(rrd=path, reference_map=ref_bt, resolution=cfg.resolution,
                                   image_size=seq.image_size, map_every=5)
 
-        build_and_write(seq, "mono", 0.8, cfg, frames, 1, None, out_dir, predictor=predictor, rrd=rrd,
-                        logger=logger, digest=digest)
+        build_and_write(keep_job, seq, out_dir, predictor=predictor, rrd=rrd, logger=logger)
     # 3. the vanilla monocular map and the table (maps built by the same job are reused)
     print("[3/3] monocular map, keep 1.0, and the mapping table", flush=True)
     run_table(TableJob(seq=args.seq, data_root=args.data_root, frames=selection, out=str(out_dir),

@@ -6,7 +6,8 @@ import numpy as np
 import octomap
 import pytest
 
-from mono_map.eval.map_metrics import calibration, morton_codes, morton_to_keys, surface_precision, tree_leaves
+from mono_map.eval.map_metrics import calibration, surface_precision
+from mono_map.mapping.octree import morton_codes, morton_to_keys, tree_leaves
 
 RES = 0.2
 

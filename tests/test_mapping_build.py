@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -15,6 +16,7 @@ from mono_map.depth.inference import DepthPrediction
 from mono_map.errors import MonoMapError
 from mono_map.mapping.build import build_map
 from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.jobs import MapJob, build_and_write, reusable
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 from mono_map.mapping.points import camera_origin, in_camera_fov, lidar_to_world, pixels_to_world
 from mono_map.mapping.select import select_pixels
@@ -154,6 +156,29 @@ def test_cli_build_and_eval(tiny_root, tmp_path, capsys):
     assert cli_main(["eval", *same, "--keep", "0.5"]) == 2
     err = capsys.readouterr().err
     assert "mono-keep0.5" in err and "does not exist" in err and len(err.strip().splitlines()) == 1
+
+
+def test_map_job_keys_names_and_reuse(tiny_root, tmp_path):
+    """A MapJob's key holds only what determines the map; it is what build_and_write stores and
+    reusable compares (naming the setting that differs)."""
+    seq = open_sequence(tiny_root, "tiny")
+    lidar = MapJob.of(seq, "lidar-fov", range(0, 2), keep=0.3, stride=4)
+    assert lidar.key() == MapJob.of(seq, "lidar-fov", range(0, 2)).key()   # LiDAR ignores keep and stride
+    assert lidar.stem() == "lidar-fov_res0.2_f0-2"
+    mono = MapJob.of(seq, "mono", range(0, 2), keep=0.5, stride=4, model="oracle")
+    assert mono.stem() == "mono-keep0.5_model-oracle_stride4_res0.2_f0-2"
+    assert mono.key()["keep"] == 0.5 and mono.key()["model"] == "oracle" and mono.key()["stride"] == 4
+    assert dataclasses.replace(mono, keep=0.9).hash() != mono.hash()
+    dist = dataclasses.replace(mono, integrate="distribution")
+    assert dist.key()["keep"] is None and dist.stem().startswith("mono-dist_")
+    assert dataclasses.replace(dist, keep=0.9).hash() == dist.hash()        # a distribution map ignores keep
+    bt, _ = build_and_write(lidar, seq, tmp_path, show_progress=False)
+    assert bt == lidar.path(tmp_path)
+    side = json.loads(bt.with_suffix(".json").read_text())
+    assert side["job"] == lidar.key() and side["job_hash"] == lidar.hash()
+    assert reusable(bt, lidar) == (True, "")
+    ok, why = reusable(bt, dataclasses.replace(lidar, octomap=OctoMapConfig(prob_hit=0.8)))
+    assert not ok and why == "built with other octomap"
 
 
 class BadPredictor:

@@ -7,11 +7,11 @@ import pytest
 
 from mono_map.config import OctoMapConfig
 from mono_map.errors import MonoMapError
-from mono_map.eval.map_metrics import tree_leaves
 from mono_map.mapping.distribution import (check_distribution, distribution_update, expected_updates, far_depth)
 from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.octree import coord_to_key, key_to_coord, tree_leaves
 from mono_map.mapping.points import camera_origin, pixels_to_world
-from mono_map.mapping.raycast import coord_to_key, key_to_coord
+
 
 K = np.array([[120.0, 0.0, 64.0], [0.0, 120.0, 24.0], [0.0, 0.0, 1.0]])
 HIT, MISS = np.float32(np.log(0.7 / 0.3)), np.float32(np.log(0.4 / 0.6))
@@ -273,7 +273,7 @@ def test_depth_gt_map_of_a_hand_built_wall():
     res = build_map(WallSequence(), "depth-gt", show_progress=False)
     leaves = tree_leaves(res.tree)
     codes, leaf = leaves.expand()
-    from mono_map.eval.map_metrics import morton_to_keys
+    from mono_map.mapping.octree import morton_to_keys
 
     z = key_to_coord(morton_to_keys(codes), 0.2)[:, 2]
     occ = leaves.occupied[leaf]

@@ -10,9 +10,10 @@ import octomap
 import pytest
 
 from mono_map.config import OctoMapConfig
-from mono_map.eval.map_metrics import compare_leaves, morton_codes, tree_leaves
+from mono_map.eval.map_metrics import compare_leaves
 from mono_map.mapping import raycast, raycast_c
 from mono_map.mapping.integrate import MapIntegrator, exact_increments
+from mono_map.mapping.octree import key_to_coord, morton_codes, tree_leaves
 from mono_map.mapping.scangraph import write_scan_graph
 
 
@@ -174,8 +175,8 @@ def test_eval_octree_accuracy_counts(tmp_path):
     for p, o in world[:4]:
         tree.insertPointCloud(p.astype(np.float64), o, discretize=False)
     ks = raycast.compute_update(world[4][0].astype(np.float64), world[4][1], 0.2, discretize_points=False)
-    lf = tree.getLabels(raycast.key_to_coord(ks.free, 0.2))
-    lo = tree.getLabels(raycast.key_to_coord(ks.occupied, 0.2))
+    lf = tree.getLabels(key_to_coord(ks.free, 0.2))
+    lo = tree.getLabels(key_to_coord(ks.occupied, 0.2))
     assert (int((lf == 0).sum() + (lo == 1).sum()), int((lf == 1).sum() + (lo == 0).sum()),
             int((lf < 0).sum() + (lo < 0).sum())) == (correct, wrong, unknown)
 

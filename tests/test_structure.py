@@ -20,32 +20,18 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "mono_map"
 
 # Import cycles (strongly connected modules) still present, owner in the comment.
-KNOWN_CYCLES: set[frozenset[str]] = {
-    # issue 13 octree row (mapping/octree.py planned; lazy import in octree_from_cells)
-    frozenset({"mono_map.mapping.integrate", "mono_map.mapping.octree_io"}),
-}
+KNOWN_CYCLES: set[frozenset[str]] = set()
 
 # (file, line text) of private imports still present, owner in the comment.
 KNOWN_PRIVATE: set[tuple[str, str]] = {
     # issue 13 data row (synth camera/LiDAR ray casting helper)
     ("mono_map/data/synth/lidar.py", "from mono_map.data.synth.camera import _cast"),
     ("tests/test_synth.py", "from mono_map.data.synth.camera import _cast"),
-    # issue 13 octree row (Morton codes in mapping/octree.py)
-    ("mono_map/eval/map_metrics.py", "from mono_map.mapping.raycast import TREE_MAX_VAL, _spread_bits"),
-    ("mono_map/mapping/octree_io.py", "from mono_map.mapping.raycast import _spread_bits"),
 }
 
 
 # Imports against the one-way flow (see LAYERS) still present, owner in the comment.
-KNOWN_UPWARD: set[tuple[str, str]] = {
-    # depth/evaluate.py drives the depth evaluation from depth/ (lead, depth row)
-    ("mono_map.depth.evaluate", "mono_map.eval.depth_metrics"),
-    ("mono_map.depth.evaluate", "mono_map.eval.hypotheses"),
-    ("mono_map.depth.evaluate", "mono_map.eval.sparsification"),
-    # mapping/table.py is a command living in mapping/ (issue 13 map-pipeline row)
-    ("mono_map.mapping.table", "mono_map.eval.map_metrics"),
-    ("mono_map.mapping.table", "mono_map.viz.plots"),
-}
+KNOWN_UPWARD: set[tuple[str, str]] = set()
 
 
 def layer(module: str) -> int:

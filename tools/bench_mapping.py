@@ -35,10 +35,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.prepare import prepare_sequence  # noqa: E402
-from mono_map.eval.map_metrics import tree_leaves  # noqa: E402
 from mono_map.frames import first_frames, parse_frames  # noqa: E402
 from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.integrate import MapIntegrator  # noqa: E402
+from mono_map.mapping.octree import tree_leaves  # noqa: E402
 from mono_map.mapping.points import camera_origin, pixels_to_world  # noqa: E402
 from mono_map.mapping.reference import lidar_measurement  # noqa: E402
 from mono_map.mapping.scangraph import write_scan_graph  # noqa: E402

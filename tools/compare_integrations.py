@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import sys
 import time
 from pathlib import Path
@@ -31,21 +30,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
-from mono_map.eval.map_metrics import calibration, compare_leaves, load_tree, surface_precision, tree_leaves  # noqa: E402
+from mono_map.eval.map_metrics import calibration, compare_leaves, surface_precision  # noqa: E402
 from mono_map.frames import frames_tag, parse_frames  # noqa: E402
 from mono_map.mapping.build import bin_edges, build_map, distribution_frame, load_predictor  # noqa: E402
 from mono_map.mapping.build import run_predictor  # noqa: E402
-from mono_map.mapping.jobs import map_stem  # noqa: E402
+from mono_map.mapping.jobs import MapJob  # noqa: E402
 from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.integrate import MapIntegrator  # noqa: E402
+from mono_map.mapping.octree import load_tree, tree_leaves  # noqa: E402
 from mono_map.mapping.points import camera_origin, pixels_to_world  # noqa: E402
 from mono_map.mapping.select import select_pixels  # noqa: E402
 
 
 def reference_leaves(seq, source: str, frames, cfg, refs: Path | None):
-    stem = map_stem(source, 1.0, cfg, frames_tag(frames), 1, None)
-    if refs is not None and (refs / f"{stem}.bt").exists():
-        return tree_leaves(load_tree(refs / f"{stem}.bt"))
+    bt = MapJob(seq.name, None, source, tuple(frames), octomap=cfg).path(refs) if refs is not None else None
+    if bt is not None and bt.exists():
+        return tree_leaves(load_tree(bt))
     return tree_leaves(build_map(seq, source, frames=frames, octomap=cfg, show_progress=False).tree)
 
 

@@ -5,7 +5,7 @@
 #     with its test extras. torch comes from whatever index pip is configured with: a machine whose pip
 #     finds a CPU wheel gets that (2.13.0+cpu on the project's machines); from plain PyPI on Linux x86-64
 #     it is the default CUDA build, which is what a machine with an NVIDIA GPU wants. For a CPU-only
-#     build from PyPI, run with PIP_INDEX_URL=https://download.pytorch.org/whl/cpu.
+#     build anywhere, run with PIP_INDEX_URL=https://download.pytorch.org/whl/cpu (PyTorch's CPU index).
 # Source it or run it; afterwards "$VENV/bin/mono-map" works.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

@@ -175,7 +175,7 @@ def _models(args) -> list[str]:
 def run_eval_depth(args) -> int:
     import torch
 
-    from mono_map.depth.evaluate import evaluate_model, markdown_report, object_frames
+    from mono_map.eval.depth_evaluation import evaluate_model, markdown_report, object_frames
     from mono_map.viz.plots import plot_hypotheses, plot_sparsification
     from mono_map.depth.inference import DepthPredictor
     from mono_map.errors import MonoMapError
@@ -201,7 +201,7 @@ def run_eval_depth(args) -> int:
         make = lambda: iter(frames)  # noqa: E731
         n, title, where = len(frames), f"Depth evaluation on real KITTI object frames ({args.kitti_object})", "object"
     elif args.trainset_town:
-        from mono_map.depth.evaluate import open_town, trainset_frames
+        from mono_map.eval.depth_evaluation import open_town, trainset_frames
 
         town = open_town(args.trainset, args.trainset_town)
         idx = selection.resolve(town.frames)

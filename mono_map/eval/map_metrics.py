@@ -19,105 +19,10 @@ is one contiguous interval — exact and vectorised.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from pathlib import Path
-
 import numpy as np
 
 from mono_map.errors import MonoMapError
-from mono_map.mapping.raycast import TREE_MAX_VAL, _spread_bits
-from mono_map.mapping.raycast import sorted_unique
-
-TREE_DEPTH = 16
-
-
-@dataclass
-class Leaves:
-    """A tree's leaves as Morton intervals: start code, length in finest cells, occupied flag."""
-
-    start: np.ndarray     # int64, sorted
-    length: np.ndarray    # int64
-    occupied: np.ndarray  # bool
-    resolution: float
-    value: np.ndarray | None = None   # float log-odds per leaf
-
-    @property
-    def cells(self) -> int:
-        return int(self.length.sum())
-
-    def expand(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every finest cell: (Morton codes, leaf index), codes sorted."""
-        total = int(self.length.sum())
-        leaf = np.repeat(np.arange(len(self.start)), self.length)
-        offset = np.arange(total) - np.repeat(np.cumsum(self.length) - self.length, self.length)
-        return self.start[leaf] + offset, leaf
-
-
-
-def load_tree(path: str | Path):
-    """Read a .bt / .ot file into an ``octomap.OcTree``; MonoMapError if missing or not an OctoMap
-    (OctoMap's own messages about a corrupt file are captured, not printed)."""
-    import octomap
-
-    from mono_map.io import quiet_native_output
-
-    path = Path(path)
-    if not path.is_file():
-        raise MonoMapError(f"{path}: map file not found")
-    with open(path, "rb") as fh:
-        head = fh.read(4096)
-    if not head.startswith(b"# Octomap OcTree"):
-        raise MonoMapError(f"{path}: not an OctoMap file (.bt/.ot header missing)")
-    header = head.split(b"\ndata\n", 1)
-    if len(header) != 2 or not header[0].isascii():
-        raise MonoMapError(f"{path}: corrupt OctoMap header (no 'data' line after the header's text lines)")
-    with quiet_native_output() as said:
-        if path.suffix == ".ot":
-            tree = octomap.OcTree.read(str(path).encode())
-        else:
-            tree = octomap.OcTree(0.1)
-            if not tree.readBinary(str(path).encode()):
-                tree = None
-    if tree is None:
-        first = next((ln.strip() for ln in said[0].splitlines() if ln.strip()), "")
-        raise MonoMapError(f"{path}: OctoMap could not read this tree" + (f" ({first[:120]})" if first else ""))
-    return tree
-
-
-def morton_codes(keys: np.ndarray) -> np.ndarray:
-    k = np.asarray(keys, dtype=np.int64)
-    code = (_spread_bits(k[:, 0]) << np.uint64(2)) | (_spread_bits(k[:, 1]) << np.uint64(1)) | _spread_bits(k[:, 2])
-    return code.astype(np.int64)
-
-
-def tree_leaves(tree) -> Leaves:
-    """All leaves of an ``octomap.OcTree`` as Morton intervals (one pass of the leaf iterator)."""
-    res = float(tree.getResolution())
-    thr = float(tree.getOccupancyThresLog())
-    n = int(tree.getNumLeafNodes())
-    xyz = np.empty((n, 3), dtype=np.float64)
-    depth = np.empty(n, dtype=np.int64)
-    value = np.empty(n, dtype=np.float64)
-    i = 0
-    for it in tree.begin_leafs():
-        if i >= n:
-            break
-        xyz[i, 0] = it.getX()
-        xyz[i, 1] = it.getY()
-        xyz[i, 2] = it.getZ()
-        depth[i] = it.getDepth()
-        value[i] = it.getValue()
-        i += 1
-    xyz, depth, value = xyz[:i], depth[:i], value[:i]
-    side = (1 << (TREE_DEPTH - depth)).astype(np.int64)          # cells per side
-    size = side * res
-    corner = xyz - size[:, None] / 2 + res / 2                     # centre of the min-corner cell
-    keys = np.round(corner / res - 0.5).astype(np.int64) + TREE_MAX_VAL
-    keys -= keys % side[:, None]                                   # align (guards rounding)
-    start = morton_codes(keys)
-    order = np.argsort(start, kind="stable")
-    return Leaves(start=start[order], length=(side ** 3)[order], occupied=(value >= thr)[order], resolution=res,
-                  value=value[order])
+from mono_map.mapping.octree import Leaves, occupied_keys, sorted_unique, tree_leaves
 
 
 def _state_at(leaves: Leaves, points: np.ndarray) -> np.ndarray:
@@ -184,29 +89,6 @@ def evaluate_map(map_tree, ref_tree) -> dict:
     out["map"] = tree_summary(map_tree)
     out["reference"] = tree_summary(ref_tree)
     return out
-
-
-def _compact_bits(x: np.ndarray) -> np.ndarray:
-    """Inverse of ``_spread_bits``: every third bit of x, packed (for Morton decoding)."""
-    x = x.astype(np.uint64) & np.uint64(0x1249249249249249)
-    for shift, mask in ((2, 0x10C30C30C30C30C3), (4, 0x100F00F00F00F00F), (8, 0x1F0000FF0000FF),
-                        (16, 0x1F00000000FFFF), (32, 0x1FFFFF)):
-        x = (x | (x >> np.uint64(shift))) & np.uint64(mask)
-    return x.astype(np.int64)
-
-
-def morton_to_keys(codes: np.ndarray) -> np.ndarray:
-    """(N, 3) int64 keys of Morton codes (inverse of :func:`morton_codes`)."""
-    c = np.asarray(codes, dtype=np.int64).astype(np.uint64)
-    return np.stack([_compact_bits(c >> np.uint64(2)), _compact_bits(c >> np.uint64(1)), _compact_bits(c)], axis=1)
-
-
-def occupied_keys(leaves: Leaves) -> np.ndarray:
-    """Keys ((N, 3) int64) of every finest cell inside an occupied leaf."""
-    occ = Leaves(leaves.start[leaves.occupied], leaves.length[leaves.occupied], leaves.occupied[leaves.occupied],
-                 leaves.resolution)
-    codes, _ = occ.expand()
-    return morton_to_keys(codes)
 
 
 def _pack(keys: np.ndarray) -> np.ndarray:

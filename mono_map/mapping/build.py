@@ -27,9 +27,10 @@ from mono_map.mapping.distribution import (INTEGRATIONS, DistributionConfig, app
                                            check_distribution_config, distribution_update, far_depth,
                                            narrow_bins)
 from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.octree import key_to_coord
 from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
 from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
-from mono_map.mapping.select import check_keep, select_pixels, valid_pixels
+from mono_map.mapping.select import DEFAULT_KEEP, check_keep, select_pixels, valid_pixels
 
 SOURCES = ("mono", "depth-gt") + LIDAR_SOURCES
 
@@ -61,8 +62,6 @@ def updated_cell_probabilities(integrator: MapIntegrator, res) -> tuple[np.ndarr
     """(centres (M, 3) metres, occupancy probabilities (M,) float32) of the cells a frame updated
     (``res``: its FrameIntegration) that are occupied after it, read from the integrator's log-odds
     mirror (cells that stopped being occupied are ``freed_keys_changed``)."""
-    from mono_map.mapping.raycast import key_to_coord
-
     keys = np.concatenate([res.keys.free, res.keys.occupied]).astype(np.int64)
     logodds = integrator.mirror.get(keys)
     occ = logodds > integrator.occ_thres
@@ -148,7 +147,162 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
     return integrator.insert_updates(upd), int(len(v))
 
 
-def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[int] | None = None,
+@dataclass
+class Measurement:
+    """One frame's input to the map (world = first cam0 frame, metres), with the camera images behind it."""
+
+    points: np.ndarray                # (N, 3) float64 end points (distribution: the kept pixels, display only)
+    origin: np.ndarray                # (3,) sensor origin
+    n_valid: int                      # valid pixels (camera) or scan points (LiDAR)
+    kept_fraction: float = 1.0
+    mean_entropy: float = float("nan")
+    image: np.ndarray | None = None   # H×W×3 uint8 RGB
+    depth: np.ndarray | None = None   # H×W float32 metres
+    entropy: np.ndarray | None = None  # H×W float32 nats
+    mask: np.ndarray | None = None    # H×W bool, pixels kept
+    prediction: object = None         # mono: the DepthPrediction (distribution mode needs its probs)
+    valid: np.ndarray | None = None   # mono: H×W bool, valid pixels
+
+
+class MapBuilder:
+    """Integrates frames of ``seq`` into a new OctoMap, one :meth:`step` per frame (see :func:`build_map`
+    for the arguments; they are checked by :func:`build_map`)."""
+
+    def __init__(self, seq, source: str, keep: float, *, octomap: OctoMapConfig, stride: int, predictor,
+                 depth_range: tuple[float, float], observers: Sequence[Callable], stats_every: int,
+                 method: str, integrate: str, distribution: DistributionConfig, n_frames: int):
+        self.seq, self.source, self.keep, self.stride = seq, source, keep, stride
+        self.predictor, self.depth_range, self.observers = predictor, depth_range, list(observers)
+        self.stats_every, self.n_frames, self.dcfg = stats_every, n_frames, distribution
+        self.dist_mode = source == "mono" and integrate == "distribution"
+        self.integrator = MapIntegrator(octomap, method=method)
+        self.edges = bin_edges(predictor) if self.dist_mode else None
+        self.K = np.asarray(seq.calib.K2, dtype=np.float64)
+        self.per_frame: list[dict] = []
+        self.points_valid = self.points_kept = self.rays_cast = 0
+        self.last = {"leaf_count": 0, "memory_mb": 0.0, "memory_bytes": 0}
+        self.t_start = time.perf_counter()
+
+    def step(self, i: int) -> None:
+        """Frame ``i``: predict → select → back-project (or read the scan) → integrate → observers."""
+        t_frame = time.perf_counter()
+        T_world_cam2 = self.seq.T_world_cam2(i)
+        if self.source == "mono":
+            m = self.mono_measurement(i, T_world_cam2)
+        elif self.source == "depth-gt":
+            m = self.depth_gt_measurement(i, T_world_cam2)
+        else:
+            m = self.lidar_measurement(i)
+        if self.dist_mode:
+            res, n_used = distribution_frame(self.integrator, m.prediction, m.valid, self.K, T_world_cam2,
+                                             self.edges, self.dcfg, i)
+            m.kept_fraction = n_used / m.n_valid
+        else:
+            res, n_used = self.integrator.insert(m.points, m.origin), len(m.points)
+        fstats = self.account(i, m, res, n_used, t_frame)
+        if self.observers:
+            self.notify(i, T_world_cam2, m, res, fstats)
+
+    def mono_measurement(self, i: int, T_world_cam2: np.ndarray) -> Measurement:
+        """Predict image_2's depth distribution, keep the lowest-entropy pixels, back-project them."""
+        image = self.seq.image(i)
+        pred = run_predictor(self.predictor, self.seq, i, image, with_probs=self.dist_mode)
+        depth = np.asarray(pred.depth, dtype=np.float32)
+        entropy = np.asarray(pred.entropy, dtype=np.float32)
+        if depth.shape != image.shape[:2] or entropy.shape != image.shape[:2]:
+            raise MonoMapError(f"frame {i}: prediction is {depth.shape}, image is {image.shape[:2]}")
+        if np.isnan(depth).any():
+            raise MonoMapError(f"frame {i}: predicted depth has {int(np.isnan(depth).sum())} NaN pixels "
+                               f"(model failure)")
+        # distribution: every valid pixel, its p_beyond is mass beyond each cell (distribution_frame);
+        # keep: pixels more likely beyond range than not (sky) are never end points
+        mask, valid = select_pixels(depth, entropy, 1.0 if self.dist_mode else self.keep, *self.depth_range,
+                                    stride=self.stride, return_valid=True,
+                                    p_beyond=None if self.dist_mode else getattr(pred, "p_beyond", None))
+        if not mask.any():
+            raise MonoMapError(f"frame {i}: empty frame, no valid predicted depth within "
+                               f"[{self.depth_range[0]:g}, {self.depth_range[1]:g}] m")
+        shown = not self.dist_mode or self.observers   # distribution mode integrates rays, not these points
+        pts = pixels_to_world(depth, mask, self.K, T_world_cam2) if shown else np.zeros((0, 3))
+        n_valid = int(valid.sum())
+        return Measurement(pts, camera_origin(T_world_cam2), n_valid, float(mask.sum()) / n_valid,
+                           float(entropy[mask].mean()), image, depth, entropy, mask, pred, valid)
+
+    def depth_gt_measurement(self, i: int, T_world_cam2: np.ndarray) -> Measurement:
+        """The synthetic ground-truth depth_2, every pixel within the bin range, back-projected."""
+        image = self.seq.image(i) if self.observers else None
+        depth = self.seq.depth(i)
+        if depth is None:
+            raise MonoMapError(f"{self.seq.path / 'depth_2'}: no ground-truth depth for frame {i}; --source "
+                               f"depth-gt needs a synthetic sequence")
+        mask = valid_pixels(depth, *self.depth_range, stride=self.stride)
+        if not mask.any():
+            raise MonoMapError(f"frame {i}: empty frame, no ground-truth depth within "
+                               f"[{self.depth_range[0]:g}, {self.depth_range[1]:g}] m")
+        return Measurement(pixels_to_world(depth, mask, self.K, T_world_cam2), camera_origin(T_world_cam2),
+                           int(mask.sum()), image=image, depth=depth, mask=mask)
+
+    def lidar_measurement(self, i: int) -> Measurement:
+        pts, origin = lidar_measurement(self.seq, i, self.source)
+        if len(pts) == 0:
+            raise MonoMapError(f"frame {i}: empty frame, the {self.source} scan has no points")
+        return Measurement(pts, origin, len(pts))
+
+    def account(self, i: int, m: Measurement, res, n_used: int, t_frame: float) -> dict:
+        """Totals and this frame's statistics (leaf count / memory every ``stats_every`` frames)."""
+        self.points_valid += m.n_valid
+        self.points_kept += n_used
+        self.rays_cast += res.keys.n_rays
+        n = len(self.per_frame) + 1
+        if n == 1 or n % self.stats_every == 0 or n == self.n_frames:  # first frame too: no zeros in the plots
+            self.last = self.integrator.stats()
+        elapsed = time.perf_counter() - self.t_start
+        fstats = {"index": int(i), "frames_per_s": n / elapsed if elapsed > 0 else 0.0,
+                  "frame_s": time.perf_counter() - t_frame,
+                  "memory_mb": self.last["memory_mb"], "leaf_count": self.last["leaf_count"],
+                  "kept_fraction": m.kept_fraction, "mean_entropy": m.mean_entropy, "n_points": int(n_used),
+                  "n_rays": int(res.keys.n_rays), "free_cells": int(len(res.keys.free)),
+                  "occupied_cells": int(len(res.keys.occupied))}
+        self.per_frame.append(fstats)
+        return fstats
+
+    def notify(self, i: int, T_world_cam2: np.ndarray, m: Measurement, res, fstats: dict) -> None:
+        upd = FrameUpdate(index=int(i), time=float(self.seq.times[i]), image=m.image, depth=m.depth,
+                          entropy=m.entropy, keep_mask=m.mask, K=self.K, T_world_cam2=T_world_cam2,
+                          points_world=m.points, origin=m.origin, occupied_keys_changed=res.became_occupied,
+                          freed_keys_changed=res.stopped_occupied, stats=dict(fstats))
+        if self.integrator.mirror is not None and any(getattr(o, "colour", None) == "probability"
+                                                      for o in self.observers):
+            upd.updated_cells, upd.updated_probability = updated_cell_probabilities(self.integrator, res)
+        for obs in self.observers:
+            obs(upd)
+
+    def result(self, frames: Sequence[int], integrate: str) -> BuildResult:
+        """The tree and the build's statistics."""
+        cfg, dcfg, dist = self.integrator.cfg, self.dcfg, self.dist_mode
+        final = self.integrator.stats()
+        wall = time.perf_counter() - self.t_start
+        stats = {
+            "source": self.source, "keep": self.keep if self.source == "mono" and not dist else None,
+            "integrate": integrate if self.source == "mono" else None,
+            "eps": dcfg.eps if dist else None, "temperature": dcfg.temperature if dist else None,
+            "sequence": getattr(self.seq, "name", None),
+            "frames": [int(frames[0]), int(frames[-1]) + 1], "n_frames": len(frames), "stride": self.stride,
+            "resolution": cfg.resolution, "prob_hit": cfg.prob_hit, "prob_miss": cfg.prob_miss,
+            "clamp_min": cfg.clamp_min, "clamp_max": cfg.clamp_max, "max_range": cfg.max_range,
+            "depth_range": list(self.depth_range) if self.source in ("mono", "depth-gt") else None,
+            "points_valid": int(self.points_valid), "points_kept": int(self.points_kept),
+            "rays_cast": int(self.rays_cast),
+            "leaf_count": final["leaf_count"], "tree_nodes": final["tree_nodes"],
+            "memory_bytes": final["memory_bytes"], "memory_mb": final["memory_mb"],
+            "wall_s": wall, "frames_per_s": len(frames) / wall if wall > 0 else 0.0,
+            "integration": self.integrator.method,
+        }
+        return BuildResult(tree=self.integrator.tree, stats=stats, per_frame=self.per_frame,
+                           integrator=self.integrator)
+
+
+def build_map(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, frames: Sequence[int] | None = None,
               octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None,
               model: str | None = None, depth_range: tuple[float, float] | None = None,
               observers: Sequence[Callable] = (), stats_every: int = 100, method: str = "batched",
@@ -190,132 +344,17 @@ def build_map(seq, source: str = "mono", keep: float = 0.8, *, frames: Sequence[
     if depth_range is None:
         bins = getattr(predictor, "bins", None) or DepthBins()
         depth_range = (float(bins.min_depth), float(bins.max_depth))
-    integrator = MapIntegrator(cfg, method=method)
-    edges = bin_edges(predictor) if dist_mode else None
-    K = np.asarray(seq.calib.K2, dtype=np.float64)
-    per_frame: list[dict] = []
-    points_valid = points_kept = rays_cast = 0
-    last = {"leaf_count": 0, "memory_mb": 0.0, "memory_bytes": 0}
-    t_start = time.perf_counter()
+    builder = MapBuilder(seq, source, keep, octomap=cfg, stride=stride, predictor=predictor,
+                         depth_range=depth_range, observers=observers, stats_every=stats_every, method=method,
+                         integrate=integrate, distribution=dcfg, n_frames=len(frames))
     iterator = frames
     if show_progress:
         from mono_map.progress import progress
 
         iterator = progress(frames, total=len(frames), desc=f"build {source}", unit="frame")
     try:
-        for n, i in enumerate(iterator, start=1):
-            t_frame = time.perf_counter()
-            T_world_cam2 = seq.T_world_cam2(i)
-            image = depth = entropy = mask = None
-            if source == "mono":
-                image = seq.image(i)
-                pred = run_predictor(predictor, seq, i, image, with_probs=dist_mode)
-                depth = np.asarray(pred.depth, dtype=np.float32)
-                entropy = np.asarray(pred.entropy, dtype=np.float32)
-                if depth.shape != image.shape[:2] or entropy.shape != image.shape[:2]:
-                    raise MonoMapError(f"frame {i}: prediction is {depth.shape}, image is {image.shape[:2]}")
-                if np.isnan(depth).any():
-                    raise MonoMapError(f"frame {i}: predicted depth has {int(np.isnan(depth).sum())} NaN pixels "
-                                       f"(model failure)")
-                # distribution: every valid pixel, its p_beyond is mass beyond each cell (distribution_frame);
-                # keep: pixels more likely beyond range than not (sky) are never end points
-                mask, valid = select_pixels(depth, entropy, 1.0 if dist_mode else keep, *depth_range,
-                                            stride=stride, return_valid=True,
-                                            p_beyond=None if dist_mode else getattr(pred, "p_beyond", None))
-                n_valid = int(valid.sum())
-                if not mask.any():
-                    raise MonoMapError(f"frame {i}: empty frame, no valid predicted depth within "
-                                       f"[{depth_range[0]:g}, {depth_range[1]:g}] m")
-                origin = camera_origin(T_world_cam2)
-                mean_entropy = float(entropy[mask].mean())
-                if dist_mode:
-                    res, n_used = distribution_frame(integrator, pred, valid, K, T_world_cam2, edges, dcfg, i)
-                    pts = pixels_to_world(depth, mask, K, T_world_cam2) if observers else np.zeros((0, 3))
-                    kept_fraction = n_used / n_valid
-                else:
-                    pts = pixels_to_world(depth, mask, K, T_world_cam2)
-                    kept_fraction = float(mask.sum()) / n_valid
-            elif source == "depth-gt":
-                image = seq.image(i) if observers else None
-                depth = seq.depth(i)
-                if depth is None:
-                    raise MonoMapError(f"{seq.path / 'depth_2'}: no ground-truth depth for frame {i}; --source "
-                                       f"depth-gt needs a synthetic sequence")
-                mask = valid_pixels(depth, *depth_range, stride=stride)
-                if not mask.any():
-                    raise MonoMapError(f"frame {i}: empty frame, no ground-truth depth within "
-                                       f"[{depth_range[0]:g}, {depth_range[1]:g}] m")
-                pts = pixels_to_world(depth, mask, K, T_world_cam2)
-                origin = camera_origin(T_world_cam2)
-                kept_fraction, mean_entropy, n_valid = 1.0, float("nan"), int(mask.sum())
-            else:
-                pts, origin = lidar_measurement(seq, i, source)
-                if len(pts) == 0:
-                    raise MonoMapError(f"frame {i}: empty frame, the {source} scan has no points")
-                kept_fraction, mean_entropy, n_valid = 1.0, float("nan"), len(pts)
-            if not dist_mode:
-                res = integrator.insert(pts, origin)
-            points_valid += n_valid
-            points_kept += n_used if dist_mode else len(pts)
-            rays_cast += res.keys.n_rays
-            if n == 1 or n % stats_every == 0 or n == len(frames):  # first frame too: no zeros in the plots
-                last = integrator.stats()
-            elapsed = time.perf_counter() - t_start
-            fstats = {"index": int(i), "frames_per_s": n / elapsed if elapsed > 0 else 0.0,
-                      "frame_s": time.perf_counter() - t_frame,
-                      "memory_mb": last["memory_mb"], "leaf_count": last["leaf_count"],
-                      "kept_fraction": kept_fraction, "mean_entropy": mean_entropy, "n_points": int(n_used if dist_mode else len(pts)),
-                      "n_rays": int(res.keys.n_rays), "free_cells": int(len(res.keys.free)),
-                      "occupied_cells": int(len(res.keys.occupied))}
-            per_frame.append(fstats)
-            if observers:
-                upd = FrameUpdate(index=int(i), time=float(seq.times[i]), image=image, depth=depth,
-                                  entropy=entropy, keep_mask=mask, K=K, T_world_cam2=T_world_cam2,
-                                  points_world=pts, origin=origin,
-                                  occupied_keys_changed=res.became_occupied,
-                                  freed_keys_changed=res.stopped_occupied, stats=dict(fstats))
-                if integrator.mirror is not None and any(getattr(o, "colour", None) == "probability"
-                                                         for o in observers):
-                    upd.updated_cells, upd.updated_probability = updated_cell_probabilities(integrator, res)
-                for obs in observers:
-                    obs(upd)
+        for i in iterator:
+            builder.step(i)
     finally:
         _close(observers)
-    tree = integrator.tree
-    final = integrator.stats()
-    wall = time.perf_counter() - t_start
-    stats = {
-        "source": source, "keep": keep if source == "mono" and not dist_mode else None,
-        "integrate": integrate if source == "mono" else None,
-        "eps": dcfg.eps if dist_mode else None, "temperature": dcfg.temperature if dist_mode else None, "sequence": getattr(seq, "name", None),
-        "frames": [int(frames[0]), int(frames[-1]) + 1], "n_frames": len(frames), "stride": stride,
-        "resolution": cfg.resolution, "prob_hit": cfg.prob_hit, "prob_miss": cfg.prob_miss,
-        "clamp_min": cfg.clamp_min, "clamp_max": cfg.clamp_max, "max_range": cfg.max_range,
-        "depth_range": list(depth_range) if source in ("mono", "depth-gt") else None,
-        "points_valid": int(points_valid), "points_kept": int(points_kept),
-        "rays_cast": int(rays_cast),
-        "leaf_count": final["leaf_count"], "tree_nodes": final["tree_nodes"],
-        "memory_bytes": final["memory_bytes"], "memory_mb": final["memory_mb"],
-        "wall_s": wall, "frames_per_s": len(frames) / wall if wall > 0 else 0.0,
-        "integration": method,
-    }
-    return BuildResult(tree=tree, stats=stats, per_frame=per_frame, integrator=integrator)
-
-
-def write_tree_bt(tree, path) -> None:
-    """Write the max-likelihood binary tree (.bt) atomically. Note: OctoMap's writeBinary converts
-    the tree in memory to max-likelihood and prunes it."""
-    from mono_map.io import atomic_path
-
-    with atomic_path(path, suffix=".bt") as tmp:
-        if not tree.writeBinary(str(tmp).encode()):
-            raise MonoMapError(f"{path}: OctoMap could not write the tree")
-
-
-def write_tree_ot(tree, path) -> None:
-    """Write the probabilistic tree (.ot: every node's log-odds) atomically."""
-    from mono_map.io import atomic_path
-
-    with atomic_path(path, suffix=".ot") as tmp:
-        if not tree.write(str(tmp).encode()):
-            raise MonoMapError(f"{path}: OctoMap could not write the tree")
+    return builder.result(frames, integrate)

@@ -6,11 +6,10 @@ import argparse
 from pathlib import Path
 
 from mono_map.io import prepare_output_dir
-from mono_map.mapping.jobs import (RRD_MIN_FREE, build_and_write, check_memory, checkpoint_path, job_key, map_stem,
+from mono_map.mapping.jobs import (RRD_MIN_FREE, MapJob, build_and_write, check_memory, checkpoint_path,
                                    model_digest, read_map_sidecar, reusable)
+from mono_map.mapping.select import DEFAULT_KEEP
 from mono_map.paths import sequence_output_dir
-
-SOURCES = ("mono", "depth-gt", "lidar", "lidar-fov")
 
 
 def _add_octomap_args(p: argparse.ArgumentParser) -> None:
@@ -65,7 +64,8 @@ def register(subparsers) -> None:
                     "with the lowest predicted entropy, back-project them and ray-cast them into the map "
                     "(or use the LiDAR scans). Writes <out>/<name>.bt and <out>/<name>.json atomically.")
     b.add_argument("--seq", required=True, help="sequence name, e.g. 00")
-    b.add_argument("--keep", type=float, default=0.8, help="fraction of valid pixels kept per frame, in (0, 1] (default 0.8)")
+    b.add_argument("--keep", type=float, default=DEFAULT_KEEP,
+                   help=f"fraction of valid pixels kept per frame, in (0, 1] (default {DEFAULT_KEEP:g})")
     b.add_argument("--source", default="mono", help="mono | depth-gt | lidar | lidar-fov (default mono); depth-gt: "
                    "the synthetic ground-truth depth_2 back-projected like a keep-1.0 mono map (upper bound)")
     _add_integration_args(b)
@@ -92,7 +92,8 @@ def register(subparsers) -> None:
                     "whatever is missing and print LiDAR-FOV, mono, mono keep 0.8 and a keep sweep.")
     e.add_argument("--map", default=None,
                    help="map to score (.bt); default: the map `mono-map build --seq SEQ --keep KEEP` wrote under --out")
-    e.add_argument("--keep", type=float, default=0.8, help="with no --map: the keep of that default map (default 0.8)")
+    e.add_argument("--keep", type=float, default=DEFAULT_KEEP,
+                   help=f"with no --map: the keep of that default map (default {DEFAULT_KEEP:g})")
     e.add_argument("--reference", default="lidar-fov", help="lidar-fov | lidar | path to a .bt (default lidar-fov); "
                    "with --table: lidar-fov, or lidar (the whole 360° LiDAR map, LiDAR-FOV then a scored row)")
     e.add_argument("--seq", default="00", help="sequence for a built reference / the table (default 00)")
@@ -118,7 +119,7 @@ def octomap_config(args):
 
     from mono_map.config import OctoMapConfig
     from mono_map.errors import MonoMapError
-    from mono_map.mapping.integrate import validate_octomap_config
+    from mono_map.mapping.octree import validate_octomap_config
 
     if args.max_range is not None and not (math.isfinite(args.max_range) and args.max_range > 0):
         raise MonoMapError(f"--max-range: must be a positive number of metres, got {args.max_range} "
@@ -183,7 +184,9 @@ def run_build(args) -> int:
     if args.source == "depth-gt" and seq.depth(frames[0]) is None:
         raise MonoMapError(f"--source depth-gt: {seq.path / 'depth_2'} has no ground-truth depth for frame "
                            f"{frames[0]} (a synthetic sequence has it)")
-    check_memory(seq, frames, args.source, cfg, args.stride, args.keep, args.integrate, dcfg)
+    job = MapJob.of(seq, args.source, frames, keep=args.keep, integrate=args.integrate, distribution=dcfg,
+                    octomap=cfg, stride=args.stride, model=args.model, digest=digest)
+    check_memory(seq, job)
     how = ""
     if args.source == "mono":
         how = (f", keep {args.keep:g}" if args.integrate == "keep" else
@@ -200,10 +203,8 @@ def run_build(args) -> int:
                                   resolution=cfg.resolution, image_size=seq.image_size)
         if rrd is None:
             observers.append(logger())
-    bt, stats = build_and_write(seq, args.source, args.keep, cfg, frames, args.stride, args.model, out_dir,
-                                name=args.name, observers=observers, predictor=predictor, rrd=rrd,
-                                logger=logger, digest=digest, integrate=args.integrate, dcfg=dcfg,
-                                write_ot=args.ot)
+    bt, stats = build_and_write(job, seq, out_dir, name=args.name, observers=observers, predictor=predictor,
+                                rrd=rrd, logger=logger, write_ot=args.ot)
     print(f"wrote {bt} ({stats['bt_bytes'] / 2**20:.1f} MB on disk) and {bt.with_suffix('.json')}"
           + (f" and {bt.with_suffix('.ot')}" if args.ot else "") + (f" and {rrd}" if rrd is not None else ""))
     print(f"  frames {stats['n_frames']}, points kept {stats['points_kept']:,}, rays cast {stats['rays_cast']:,}, "
@@ -215,14 +216,14 @@ def run_build(args) -> int:
 def reference_path(ref: str, seq, cfg, frames, out_dir: Path) -> Path:
     """The reference .bt: a path, or the LiDAR(-FOV) map of the sequence (built if missing or stale)."""
     from mono_map.errors import MonoMapError
-    from mono_map.frames import frames_tag
+
     if ref in ("lidar", "lidar-fov"):
-        stem = map_stem(ref, 1.0, cfg, frames_tag(frames), 1, None)
-        bt = out_dir / f"{stem}.bt"
-        ok, why = reusable(bt, job_key(seq, ref, 1.0, cfg, frames, 1, None))
+        job = MapJob.of(seq, ref, frames, octomap=cfg)
+        bt = job.path(out_dir)
+        ok, why = reusable(bt, job)
         if not ok:
             print(f"building the {ref} reference map ({bt}: {why})", flush=True)
-            build_and_write(seq, ref, 1.0, cfg, frames, 1, None, out_dir)
+            build_and_write(job, seq, out_dir)
         return bt
     path = Path(ref)
     if not path.is_file():
@@ -261,19 +262,17 @@ def default_map_path(args, cfg, dcfg, selection) -> Path:
     --integrate options) writes; MonoMapError if it is not there yet or was built from other data or another model."""
     from mono_map.data.prepare import prepare_sequence
     from mono_map.errors import MonoMapError
-    from mono_map.frames import frames_tag
 
     seq = prepare_sequence(args.data_root, args.seq, selection, render=False)
     frames = selection.resolve(len(seq))
-    out_dir = sequence_output_dir(args.out, args.seq)
-    path = out_dir / (map_stem("mono", args.keep, cfg, frames_tag(frames), args.stride, args.model, args.integrate,
-                               dcfg) + ".bt")
+    job = MapJob.of(seq, "mono", frames, keep=args.keep, integrate=args.integrate, distribution=dcfg, octomap=cfg,
+                    stride=args.stride, model=args.model)
+    path = job.path(sequence_output_dir(args.out, args.seq))
     how = f"--keep {args.keep:g}" if args.integrate == "keep" else "--integrate distribution"
     if not path.is_file():
         raise MonoMapError(f"--map: none given, and {path} does not exist yet "
                            f"(build it: mono-map build --seq {args.seq} {how}, or pass --map)")
-    ok, why = reusable(path, job_key(seq, "mono", args.keep, cfg, frames, args.stride, args.model,
-                                     integrate=args.integrate, dcfg=dcfg))
+    ok, why = reusable(path, job)
     if not ok:
         raise MonoMapError(f"--map: none given, and {path} is stale ({why}); rebuild it with mono-map build "
                            f"--seq {args.seq} {how}, or pass --map")
@@ -303,7 +302,7 @@ def run_eval(args) -> int:
 
     cfg, dcfg, selection = check_eval_options(args)
     if args.table:
-        from mono_map.mapping.table import TableJob, run_table
+        from mono_map.eval.table import TableJob
 
         if args.reference not in ("lidar", "lidar-fov"):
             raise MonoMapError(f"--reference: the table is scored against 'lidar-fov' or 'lidar', "
@@ -313,7 +312,8 @@ def run_eval(args) -> int:
                                   octomap=cfg, reference=args.reference, paper_only=args.paper_only,
                                   distribution=dcfg))
     from mono_map.data.prepare import prepare_sequence
-    from mono_map.eval.map_metrics import evaluate_map, load_tree
+    from mono_map.eval.map_metrics import evaluate_map
+    from mono_map.mapping.octree import load_tree
     from mono_map.io import write_json_atomic
 
     map_path = Path(args.map) if args.map else default_map_path(args, cfg, dcfg, selection)
@@ -348,6 +348,18 @@ def run_eval(args) -> int:
     print(format_metrics(metrics))
     if args.json:
         write_json_atomic(args.json, metrics)
+    return 0
+
+
+def run_table(job) -> int:
+    """``eval --table``: build what is missing, score, write the table and its pictures, print it."""
+    from mono_map.eval.table import run_table as score_table
+    from mono_map.viz.plots import plot_table
+
+    table = score_table(job)
+    pngs = plot_table(table)
+    print(table.markdown)
+    print(f"wrote {table.out_dir / (table.stem + '.md')}, .json, {', '.join(pngs)}")
     return 0
 
 

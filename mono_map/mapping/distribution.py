@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mono_map.errors import MonoMapError
-from mono_map.mapping.raycast import KeyBox, TREE_MAX_VAL, coord_to_key, cut_at_range, key_in_range, key_to_coord, norm_f32
+from mono_map.mapping.octree import TREE_MAX_VAL, coord_to_key, key_in_range, key_to_coord
+from mono_map.mapping.raycast import KeyBox, cut_at_range, norm_f32
 
 INTEGRATIONS = ("keep", "distribution")
 _SUM_TOL = 1e-3       # probs + p_beyond may exceed 1 by float32 rounding, not more

@@ -18,38 +18,8 @@ import numpy as np
 
 from mono_map.config import OctoMapConfig
 from mono_map.errors import MonoMapError
-from mono_map.mapping.raycast import KeySets, compute_update, key_to_coord, morton_order, sorted_unique
-
-
-def make_octree(cfg: OctoMapConfig):
-    """An empty ``octomap.OcTree`` with the config's resolution, sensor model and clamping."""
-    import octomap
-
-    validate_octomap_config(cfg)
-    return apply_sensor_model(octomap.OcTree(float(cfg.resolution)), cfg)
-
-
-def apply_sensor_model(tree, cfg: OctoMapConfig):
-    """Set the config's hit/miss probabilities, clamping and occupancy threshold on ``tree``; returns it."""
-    tree.setProbHit(float(cfg.prob_hit))
-    tree.setProbMiss(float(cfg.prob_miss))
-    tree.setClampingThresMin(float(cfg.clamp_min))
-    tree.setClampingThresMax(float(cfg.clamp_max))
-    tree.setOccupancyThres(float(cfg.occupancy_threshold))
-    return tree
-
-
-def validate_octomap_config(cfg: OctoMapConfig) -> None:
-    if not (cfg.resolution > 0 and np.isfinite(cfg.resolution)):
-        raise MonoMapError(f"--res: resolution must be a positive number of metres, got {cfg.resolution}")
-    if cfg.resolution < 0.01:
-        raise MonoMapError(f"--res: {cfg.resolution} m is finer than this tool supports (>= 0.01 m)")
-    if not (0.0 < cfg.prob_miss < 0.5 < cfg.prob_hit < 1.0):
-        raise MonoMapError(f"--prob-miss/--prob-hit: need 0 < miss < 0.5 < hit < 1, got miss={cfg.prob_miss}, "
-                           f"hit={cfg.prob_hit}")
-    if not (0.0 < cfg.clamp_min < cfg.occupancy_threshold < cfg.clamp_max < 1.0):
-        raise MonoMapError(f"--clamp-min/--clamp-max: need 0 < min < {cfg.occupancy_threshold} < max < 1, "
-                           f"got min={cfg.clamp_min}, max={cfg.clamp_max}")
+from mono_map.mapping.octree import key_to_coord, make_octree, morton_order, octree_from_cells, sorted_unique
+from mono_map.mapping.raycast import KeySets, compute_update
 
 
 class LogOddsMirror:
@@ -220,7 +190,7 @@ class MapIntegrator:
     increment, one ``updateNodes`` call per group). Cells are independent and OctoMap prunes
     whenever children become equal, so the synced tree equals, node for node, the tree that
     frame-by-frame ``insertPointCloud`` builds. When many cells changed, the tree is instead
-    rebuilt from the mirror in one go (:mod:`mono_map.mapping.octree_io`), which gives the same tree.
+    rebuilt from the mirror in one go (:func:`mono_map.mapping.octree.octree_from_cells`), which gives the same tree.
     method="insertPointCloud": octomap-python's own ``insertPointCloud(discretize=True)`` per frame
     (reference/benchmark; changed-cell lists are then empty).
     """
@@ -336,7 +306,7 @@ class MapIntegrator:
         """Bring the octree up to the mirror; returns seconds spent.
 
         Few changed cells: exact increments through ``updateNodes``. Many (relative to the map):
-        rebuild the whole tree from the mirror in one ``.ot`` stream (:mod:`octree_io`) — the same tree.
+        rebuild the whole tree from the mirror in one ``.ot`` stream (:func:`~mono_map.mapping.octree.octree_from_cells`) — the same tree.
         """
         import time
 
@@ -354,8 +324,6 @@ class MapIntegrator:
         idx, new, old = idx[moved], new[moved], old[moved]
         self.n_known = getattr(self, "n_known", 0) + int(np.isnan(old).sum())
         if len(idx) > self.REBUILD_RATIO * self.n_known or self._many_increments(new, old):
-            from mono_map.mapping.octree_io import octree_from_cells
-
             known = np.flatnonzero(~np.isnan(m.pool[:used]))
             self._tree = octree_from_cells(m.keys_of(known), m.pool[known], self.cfg)
             m.synced[:used] = m.pool[:used]

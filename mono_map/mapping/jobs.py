@@ -1,16 +1,25 @@
-"""A map job: everything that determines a map, its file name and key, and building + publishing it.
+"""A map job: everything that determines a map (:class:`MapJob`), its file name and key, and building +
+publishing it.
 
-``job_key`` lists what determines a map (data root, sequence and synthetic recipe hash, source,
-keep, stride, the checkpoint's sha256 digest, OctoMap settings, frames, integration); it is stored
-in the map's ``.json`` and :func:`reusable` compares it before a written map is reused (the file
-name, :func:`map_stem`, is for people). :func:`build_and_write` builds a map and publishes its
-``.bt``, ``.json`` (and ``.rrd``) together or not at all; :func:`check_memory` refuses, before
-building, settings whose first frame would not fit in memory.
+A :class:`MapJob` holds the data root, sequence and synthetic recipe marker, source, keep, integration,
+OctoMap settings, frames, stride, the checkpoint's sha256 digest and the inference precision. Its
+:meth:`MapJob.key` is stored in the map's ``.json`` and :func:`reusable` compares it before a written
+map is reused; :meth:`MapJob.stem` is the file name, for people. :func:`build_and_write` builds a map
+and publishes its ``.bt``, ``.json`` (and ``.ot``, ``.rrd``) together or not at all; :func:`check_memory`
+refuses, before building, a job whose first frame would not fit in memory.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
 from pathlib import Path
+
+from mono_map.config import OctoMapConfig
+from mono_map.frames import frames_tag
+from mono_map.mapping.distribution import DistributionConfig
 
 # rerun's file sink blocks for good on a full disk: a recording stops while this much is still free
 RRD_MIN_FREE = 32 << 20
@@ -53,8 +62,6 @@ def checkpoint_path(model: str | None) -> Path | None:
 
 def model_digest(model: str | None) -> str:
     """What identifies the depth model: sha256 of its checkpoint file (first 16 hex), or 'oracle'."""
-    import hashlib
-
     path = checkpoint_path(model)
     if path is None:
         return "oracle"
@@ -65,52 +72,117 @@ def model_digest(model: str | None) -> str:
     return h.hexdigest()[:16]
 
 
-def job_key(seq, source: str, keep: float, cfg, frames, stride: int, model: str | None,
-            digest: str | None = None, integrate: str = "keep", dcfg=None) -> dict:
-    """Everything that determines a map: stored in its .json, compared before a map is reused.
+def synthetic_marker(seq) -> tuple[tuple[str, object], ...]:
+    """What identifies a rendered synthetic sequence (recipe hash, generator version, frame count) from
+    its ``synth.json``; () for real data."""
+    if seq is None or not (seq.path / "synth.json").is_file():
+        return ()
+    try:
+        info = json.loads((seq.path / "synth.json").read_text())
+    except (ValueError, UnicodeDecodeError):
+        return ()
+    return tuple((k, info.get(k)) for k in ("recipe_hash", "generator_version", "n_frames"))
 
-    integrate / dcfg (mono only): "keep" or "distribution" with its DistributionConfig (default
-    settings if None); a distribution map ignores ``keep``."""
-    import dataclasses
 
-    from mono_map.frames import frames_tag
+@dataclass(frozen=True)
+class MapJob:
+    """Everything that determines a map. Settings a source ignores (keep for LiDAR, keep for a
+    distribution map, stride for LiDAR, the model for non-mono sources) do not enter :meth:`key`.
 
-    marker = {}
-    if seq is not None and (seq.path / "synth.json").is_file():
-        import json
+    model: ``--model`` as given (None: the shipped checkpoint; names the file); digest: its
+    checkpoint's sha256 (first 16 hex, or 'oracle'); precision: the inference precision of a mono
+    build (:func:`mono_map.depth.inference.default_precision`)."""
 
-        try:
-            info = json.loads((seq.path / "synth.json").read_text())
-            marker = {k: info.get(k) for k in ("recipe_hash", "generator_version", "n_frames")}
-        except (ValueError, UnicodeDecodeError):
-            marker = {}
-    mono = source == "mono"
-    camera = source in ("mono", "depth-gt")
-    dist = mono and integrate == "distribution"
-    integration = {"method": "batched", "mode": integrate if mono else None, "distribution": None}
-    if dist:
-        from mono_map.mapping.distribution import DistributionConfig
+    sequence: str | None
+    data_root: str | None
+    source: str
+    frames: tuple[int, ...]
+    keep: float = 1.0
+    integrate: str = "keep"
+    distribution: DistributionConfig = field(default_factory=DistributionConfig)
+    octomap: OctoMapConfig = field(default_factory=OctoMapConfig)
+    stride: int = 1
+    model: str | None = None
+    digest: str | None = None
+    precision: str | None = None
+    synthetic: tuple[tuple[str, object], ...] = ()
 
-        integration["distribution"] = dataclasses.asdict(dcfg or DistributionConfig())
-    precision = None
-    if mono and model != "oracle":
-        from mono_map.depth.inference import default_precision
+    @classmethod
+    def of(cls, seq, source: str, frames, *, keep: float = 1.0, integrate: str = "keep",
+           distribution: DistributionConfig | None = None, octomap: OctoMapConfig | None = None,
+           stride: int = 1, model: str | None = None, digest: str | None = None) -> "MapJob":
+        """The job of building ``frames`` of the open sequence ``seq`` (its root, name and synthetic
+        marker are read from it); ``digest`` defaults to :func:`model_digest` of ``model`` (mono only)."""
+        mono = source == "mono"
+        precision = None
+        if mono and model != "oracle":
+            from mono_map.depth.inference import default_precision
 
-        precision = default_precision()
-    return {"data_root": str(Path(seq.root).resolve()) if seq is not None else None,
-            "sequence": getattr(seq, "name", None), "synthetic": marker or None,
-            "source": source, "keep": float(keep) if mono and not dist else None,
-            "stride": int(stride) if camera else None,
-            "model": (digest or model_digest(model)) if mono else None,
-            "frames": frames_tag(frames), "octomap": dataclasses.asdict(cfg), "integration": integration,
-            "precision": precision}
+            precision = default_precision()
+        return cls(sequence=getattr(seq, "name", None), data_root=str(Path(seq.root).resolve()),
+                   source=source, frames=tuple(int(i) for i in frames), keep=float(keep), integrate=integrate,
+                   distribution=distribution or DistributionConfig(), octomap=octomap or OctoMapConfig(),
+                   stride=int(stride), model=model if mono else None,
+                   digest=(digest or model_digest(model)) if mono else None, precision=precision,
+                   synthetic=synthetic_marker(seq))
+
+    @property
+    def mono(self) -> bool:
+        return self.source == "mono"
+
+    @property
+    def distributional(self) -> bool:
+        """A mono map integrating whole distributions (``--integrate distribution``; keep ignored)."""
+        return self.mono and self.integrate == "distribution"
+
+    def key(self) -> dict:
+        """Everything that determines the map, as JSON: stored in its .json, compared before reuse."""
+        camera = self.source in ("mono", "depth-gt")
+        integration = {"method": "batched", "mode": self.integrate if self.mono else None,
+                       "distribution": dataclasses.asdict(self.distribution) if self.distributional else None}
+        return {"data_root": self.data_root, "sequence": self.sequence, "synthetic": dict(self.synthetic) or None,
+                "source": self.source, "keep": self.keep if self.mono and not self.distributional else None,
+                "stride": self.stride if camera else None, "model": self.digest if self.mono else None,
+                "frames": frames_tag(self.frames), "octomap": dataclasses.asdict(self.octomap),
+                "integration": integration, "precision": self.precision}
+
+    def hash(self) -> str:
+        """sha256 (first 16 hex) of :meth:`key`: equal for two jobs iff they make the same map."""
+        return hashlib.sha256(json.dumps(self.key(), sort_keys=True).encode()).hexdigest()[:16]
+
+    def stem(self) -> str:
+        """A file stem that encodes every setting changing the map (the .json's key decides reuse)."""
+        if self.distributional:
+            dd, dcfg = DistributionConfig(), self.distribution
+            parts = ["mono-dist" + (f"-eps{dcfg.eps:g}" if dcfg.eps != dd.eps else "")
+                     + (f"-temp{dcfg.temperature:g}" if dcfg.temperature != dd.temperature else "")
+                     + (f"-step{dcfg.ray_step}" if dcfg.ray_step != dd.ray_step else "")
+                     + (f"-min{dcfg.min_update:g}" if dcfg.min_update != dd.min_update else "")
+                     + (f"-spread{dcfg.bin_spread:g}" if dcfg.bin_spread != dd.bin_spread else "")]
+        else:
+            parts = [self.source if not self.mono else f"mono-keep{self.keep:g}"]
+        if self.mono and self.model:
+            parts.append("model-" + Path(str(self.model)).stem)
+        if self.source in ("mono", "depth-gt") and self.stride != 1:
+            parts.append(f"stride{self.stride}")
+        cfg, d = self.octomap, OctoMapConfig()
+        parts.append(f"res{cfg.resolution:g}")
+        if cfg.max_range != d.max_range:
+            parts.append(f"maxrange{cfg.max_range:g}")
+        for name in ("prob_hit", "prob_miss", "clamp_min", "clamp_max"):
+            if getattr(cfg, name) != getattr(d, name):
+                parts.append(f"{name.replace('_', '')}{getattr(cfg, name):g}")
+        parts.append(frames_tag(self.frames))
+        return "_".join(parts)
+
+    def path(self, out_dir: Path) -> Path:
+        """``<out_dir>/<stem>.bt``."""
+        return Path(out_dir) / f"{self.stem()}.bt"
 
 
 def read_map_sidecar(path: Path) -> dict | None:
     """The ``.json`` a build wrote beside ``<name>.bt``: {"stats", "job", ...}; None if absent;
     MonoMapError naming it if it is not one."""
-    import json
-
     from mono_map.errors import MonoMapError
 
     side = Path(path).with_suffix(".json")
@@ -127,10 +199,11 @@ def read_map_sidecar(path: Path) -> dict | None:
     return data
 
 
-def reusable(bt: Path, job: dict) -> tuple[bool, str]:
+def reusable(bt: Path, job: MapJob) -> tuple[bool, str]:
     """Whether ``bt`` (with its .json) was built by exactly ``job``; (False, why) otherwise."""
     from mono_map.errors import MonoMapError
 
+    key = job.key()
     if not bt.is_file():
         return False, "not built yet"
     try:
@@ -139,9 +212,9 @@ def reusable(bt: Path, job: dict) -> tuple[bool, str]:
         return False, str(exc)
     if side is None:
         return False, f"{bt.with_suffix('.json').name} missing"
-    if side.get("job") != job:
+    if side.get("job") != key:
         stored = side.get("job") or {}
-        diff = sorted(k for k in set(job) | set(stored) if job.get(k) != stored.get(k))
+        diff = sorted(k for k in set(key) | set(stored) if key.get(k) != stored.get(k))
         return False, f"built with other {', '.join(diff) or 'settings'}"
     if side["stats"].get("bt_bytes") not in (None, bt.stat().st_size):
         return False, f"{bt.name} does not match its .json"
@@ -200,79 +273,44 @@ def estimate_frame_bytes(seq, i: int, source: str, cfg, stride: int, keep: float
     return float(np.sum(lengths / cfg.resolution + 1)) * BYTES_PER_VISIT
 
 
-def check_memory(seq, frames, source: str, cfg, stride: int, keep: float, integrate: str = "keep",
-                 dcfg=None) -> None:
-    """Refuse, before building, settings whose first frame alone would not fit in memory (a distribution
+def check_memory(seq, job: MapJob) -> None:
+    """Refuse, before building, a job whose first frame alone would not fit in memory (a distribution
     build: one ray every ``ray_step``-th pixel of every valid one; depth-gt: every pixel)."""
     from mono_map.errors import MonoMapError
 
-    if source == "depth-gt":
+    keep, stride, cfg = job.keep, job.stride, job.octomap
+    if job.source == "depth-gt":
         keep = 1.0
-    elif source == "mono" and integrate == "distribution":
-        from mono_map.mapping.distribution import DistributionConfig
-
-        keep, stride = 1.0, stride * (dcfg or DistributionConfig()).ray_step
-    need = estimate_frame_bytes(seq, frames[0], source, cfg, stride, keep)
+    elif job.distributional:
+        keep, stride = 1.0, stride * job.distribution.ray_step
+    need = estimate_frame_bytes(seq, job.frames[0], job.source, cfg, stride, keep)
     limit, where = memory_limit()
     if need > limit:
-        raise MonoMapError(f"--res: {cfg.resolution:g} m cells: integrating frame {frames[0]} alone would need about "
-                           f"{need / 2**30:.1f} GB, more than the {limit / 2**30:.1f} GB allowed ({where}); "
+        raise MonoMapError(f"--res: {cfg.resolution:g} m cells: integrating frame {job.frames[0]} alone would need "
+                           f"about {need / 2**30:.1f} GB, more than the {limit / 2**30:.1f} GB allowed ({where}); "
                            "use a coarser --res, a --max-range or a larger --stride")
 
 
-def map_stem(source: str, keep: float, cfg, frames_desc: str, stride: int, model: str | None,
-             integrate: str = "keep", dcfg=None) -> str:
-    """A file stem that encodes every parameter changing the map (the .json's job key decides reuse)."""
-    from mono_map.config import OctoMapConfig
-    from mono_map.mapping.distribution import DistributionConfig
-
-    if source == "mono" and integrate == "distribution":
-        dd, dcfg = DistributionConfig(), dcfg or DistributionConfig()
-        parts = ["mono-dist" + (f"-eps{dcfg.eps:g}" if dcfg.eps != dd.eps else "")
-                 + (f"-temp{dcfg.temperature:g}" if dcfg.temperature != dd.temperature else "")
-                 + (f"-step{dcfg.ray_step}" if dcfg.ray_step != dd.ray_step else "")
-                 + (f"-min{dcfg.min_update:g}" if dcfg.min_update != dd.min_update else "")
-                 + (f"-spread{dcfg.bin_spread:g}" if dcfg.bin_spread != dd.bin_spread else "")]
-    else:
-        parts = [source if source != "mono" else f"mono-keep{keep:g}"]
-    if source == "mono" and model:
-        parts.append("model-" + Path(str(model)).stem)
-    if source in ("mono", "depth-gt") and stride != 1:
-        parts.append(f"stride{stride}")
-    parts.append(f"res{cfg.resolution:g}")
-    d = OctoMapConfig()
-    if cfg.max_range != d.max_range:
-        parts.append(f"maxrange{cfg.max_range:g}")
-    for name in ("prob_hit", "prob_miss", "clamp_min", "clamp_max"):
-        if getattr(cfg, name) != getattr(d, name):
-            parts.append(f"{name.replace('_', '')}{getattr(cfg, name):g}")
-    parts.append(frames_desc)
-    return "_".join(parts)
-
-
-def build_and_write(seq, source: str, keep: float, cfg, frames, stride: int, model: str | None,
-                    out_dir: Path, name: str | None = None, observers=(), show_progress: bool = True,
-                    predictor=None, rrd: Path | None = None, logger=None, digest: str | None = None,
-                    integrate: str = "keep", dcfg=None, write_ot: bool = False) -> tuple[Path, dict]:
-    """Build one map and publish ``<name>.bt``, ``<name>.json`` (with ``write_ot`` the probabilistic
-    ``<name>.ot`` that calibration needs — .bt keeps max-likelihood states only — and ``rrd``)
-    together; (bt path, stats).
+def build_and_write(job: MapJob, seq, out_dir: Path, name: str | None = None, observers=(),
+                    show_progress: bool = True, predictor=None, rrd: Path | None = None, logger=None,
+                    write_ot: bool = False) -> tuple[Path, dict]:
+    """Build ``job``'s map from the open sequence ``seq`` and publish ``<name>.bt`` (default
+    :meth:`MapJob.stem`), ``<name>.json`` (with ``write_ot`` the probabilistic ``<name>.ot`` that
+    calibration needs — .bt keeps max-likelihood states only — and ``rrd``) together; (bt path, stats).
 
     ``logger(rrd_path)`` makes the recording observer, given the temporary path the recording is
     written to (renamed with the map only if the whole build succeeds). Nothing is published
-    if the build fails. integrate / dcfg: see :func:`mono_map.mapping.build.build_map`.
+    if the build fails. predictor: None loads ``job.model`` (mono).
     """
     from mono_map.errors import MonoMapError
-    from mono_map.frames import frames_tag
     from mono_map.io import atomic_outputs, quiet_native_output, write_json_atomic
-    from mono_map.mapping.build import build_map, load_predictor, write_tree_bt, write_tree_ot
+    from mono_map.mapping.build import build_map, load_predictor
+    from mono_map.mapping.octree import write_tree_bt, write_tree_ot
 
-    frames = list(frames)
-    job = job_key(seq, source, keep, cfg, frames, stride, model, digest, integrate, dcfg)
-    if source == "mono" and predictor is None:
-        predictor = load_predictor(model)
-    name = name or map_stem(source, keep, cfg, frames_tag(frames), stride, model, integrate, dcfg)
-    bt = out_dir / f"{name}.bt"
+    frames = list(job.frames)
+    if job.mono and predictor is None:
+        predictor = load_predictor(job.model)
+    bt = Path(out_dir) / f"{name or job.stem()}.bt"
     extra = ([bt.with_suffix(".ot")] if write_ot else []) + ([Path(rrd)] if rrd is not None else [])
     targets = [bt] + extra + [bt.with_suffix(".json")]
     with atomic_outputs(*targets) as temps:
@@ -281,15 +319,15 @@ def build_and_write(seq, source: str, keep: float, cfg, frames, stride: int, mod
         if rrd is not None:
             observers = [DiskSpaceGuard(Path(rrd))] + observers + [logger(temp_of[Path(rrd)])]
         try:
-            result = build_map(seq, source=source, keep=keep, frames=frames, octomap=cfg, stride=stride,
-                               predictor=predictor, observers=observers, show_progress=show_progress,
-                               integrate=integrate, distribution=dcfg)
+            result = build_map(seq, source=job.source, keep=job.keep, frames=frames, octomap=job.octomap,
+                               stride=job.stride, predictor=predictor, observers=observers,
+                               show_progress=show_progress, integrate=job.integrate, distribution=job.distribution)
         except RuntimeError as exc:  # rerun's flush timing out: its sink could not write the recording
             if rrd is None:
                 raise
             raise MonoMapError(f"{rrd}: rerun could not write the recording ({exc})") from None
         stats = dict(result.stats)
-        stats["model"] = (model or "shipped binary checkpoint") if source == "mono" else None
+        stats["model"] = (job.model or "shipped binary checkpoint") if job.mono else None
         if frames != list(range(frames[0], frames[-1] + 1)):
             stats["frame_indices"] = frames
         if write_ot:  # before the .bt: writeBinary turns the tree max-likelihood in memory
@@ -302,7 +340,8 @@ def build_and_write(seq, source: str, keep: float, cfg, frames, stride: int, mod
         stats["bt"] = str(bt)
         stats["bt_bytes"] = temps[0].stat().st_size
         with _naming(bt.with_suffix(".json")):
-            write_json_atomic(temps[-1], {"stats": stats, "job": job, "per_frame": result.per_frame})
+            write_json_atomic(temps[-1], {"stats": stats, "job": job.key(), "job_hash": job.hash(),
+                                          "per_frame": result.per_frame})
     return bt, stats
 
 

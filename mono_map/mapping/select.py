@@ -6,6 +6,8 @@ import numpy as np
 
 from mono_map.errors import MonoMapError
 
+DEFAULT_KEEP = 0.8   # the paper's uncertainty-aware map: the 80 % lowest-entropy valid pixels of a frame
+
 
 def check_keep(keep: float) -> float:
     keep = float(keep)

@@ -78,33 +78,17 @@ def group_by_block(idx: np.ndarray, block_cells: int) -> list[tuple[int, np.ndar
 
 
 def occupied_cells(tree) -> tuple[np.ndarray, float]:
-    """Occupied cells of an ``octomap.OcTree`` → (centres (N,3) metres at finest resolution, resolution).
+    """Occupied cells of an ``octomap.OcTree`` → (centres (N,3) metres at finest resolution, in Morton
+    order, resolution): pruned (merged) occupied nodes are expanded into their finest cells."""
+    from mono_map.mapping.octree import key_to_coord, occupied_keys, tree_leaves
 
-    Pruned (merged) occupied nodes are expanded into their finest-level cells; finest leaves come
-    first, in leaf order, then the expanded ones.
-    """
     res = float(tree.getResolution())
-    centres, sizes = [], []
-    for leaf in tree.begin_leafs():
-        if tree.isNodeOccupied(leaf):
-            centres.append(leaf.getCoordinate())
-            sizes.append(leaf.getSize())
-    if not centres:
-        return np.zeros((0, 3)), res
-    centres = np.asarray(centres, dtype=np.float64)
-    sizes = np.asarray(sizes, dtype=np.float64)
-    big = sizes > res * 1.5
-    out = [centres[~big]]
-    for c, s in zip(centres[big], sizes[big]):
-        n = int(round(s / res))
-        g = (np.arange(n) + 0.5) * res - s / 2
-        out.append(c + np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3))
-    return np.concatenate(out), res
+    return key_to_coord(occupied_keys(tree_leaves(tree)), res), res
 
 
 def occupied_cells_from_bt(path) -> tuple[np.ndarray, float]:
     """Read an OctoMap ``.bt`` (or ``.ot``) → :func:`occupied_cells` of it; MonoMapError naming the file."""
-    from mono_map.eval.map_metrics import load_tree
+    from mono_map.mapping.octree import load_tree
 
     return occupied_cells(load_tree(path))
 

@@ -4,11 +4,12 @@
   World = first cam0 frame: x right, y DOWN, z forward. The picture looks down on the x–z plane;
   colour encodes height = -y, normalised over the shown maps (shared range), taken per pixel from
   the highest occupied cell.
-* :func:`plot_sweep` — map accuracy and memory against ``keep`` (``mono-map table``).
+* :func:`plot_table` — every picture of ``eval --table`` (the next three and the top-down maps).
+* :func:`plot_sweep` — map accuracy and memory against ``keep`` (``eval --table``).
 * :func:`plot_accuracy_memory` — accuracy against memory: keep sweep a curve, distribution map a point.
 * :func:`plot_reliability` — reliability diagrams of maps' occupancy probabilities (``eval --table``).
-* :func:`plot_sparsification` — sparsification and oracle curves per head (``mono-map evaluate``).
-* :func:`plot_hypotheses` — oracle multi-hypothesis errors against M (``mono-map evaluate``).
+* :func:`plot_sparsification` — sparsification and oracle curves per head (``mono-map eval-depth``).
+* :func:`plot_hypotheses` — oracle multi-hypothesis errors against M (``mono-map eval-depth``).
 """
 
 from __future__ import annotations
@@ -103,9 +104,24 @@ def render_topdown(maps: list[tuple[str, object]], path: str | Path, res: float 
 # --------------------------------------------------------------------------- map table
 
 
+def plot_table(table) -> list[str]:
+    """The pictures of a :class:`mono_map.eval.table.Table` beside its Markdown: the keep sweep and, for the
+    extended table, accuracy vs memory and the reliability diagram, then the top-down maps; their file names."""
+    ref_label = "LiDAR-FOV" if table.reference == "lidar-fov" else "LiDAR"
+    out, stem = table.out_dir, table.stem
+    plot_sweep(table.rows, out / f"{stem}_sweep.png", ref_label)
+    pngs = [f"{stem}_sweep.png"]
+    if table.extended:
+        plot_accuracy_memory(table.rows, out / f"{stem}_acc_memory.png", ref_label)
+        plot_reliability(table.reliability, out / f"{stem}_reliability.png", ref_label)
+        pngs += [f"{stem}_acc_memory.png", f"{stem}_reliability.png"]
+    render_topdown(table.topdown, out / f"{stem}_topdown.png")
+    return pngs + [f"{stem}_topdown.png"]
+
+
 def plot_sweep(rows: list[dict], path: Path, reference_label: str = "LiDAR-FOV") -> None:
     """Accuracy (left axis) and memory (right axis) of the mono rows against keep; the LiDAR-FOV row's
-    memory as a dotted line. ``rows``: ``mono-map table`` rows (source, keep, accuracy, accuracy_covered,
+    memory as a dotted line. ``rows``: ``eval --table`` rows (source, keep, accuracy, accuracy_covered,
     memory_mb)."""
     mono = sorted((r for r in rows if r["source"] == "mono"), key=lambda r: r["keep"])
     ref = next(r for r in rows if r["source"] == "lidar-fov")

@@ -67,7 +67,7 @@ import numpy as np
 
 from mono_map.errors import MonoMapError
 from mono_map.io import atomic_path
-from mono_map.viz.codec import (DEFAULT_HEIGHT_RANGE, PROBABILITY_RANGE, apply_lut, cell_indices, colormap_lut,
+from mono_map.viz.codec import (DEFAULT_HEIGHT_RANGE, PROBABILITY_RANGE, cell_indices, colormap_lut, colourise,
                                 encode_jpeg_bgr, encode_jpeg_rgb, encode_png, group_by_block, height_range_of,
                                 heights, map_bounds, occupied_cells_from_bt, pack, sorted_difference,
                                 sorted_union, unpack)
@@ -105,7 +105,7 @@ def cells_archetype(idx: np.ndarray, resolution: float, style: str = "voxels",
             value_range=[lo, hi], colormap=getattr(rr.components.Colormap, cmap.capitalize()),
             translation=(o * resolution).astype(np.float64))
     centres = ((idx.astype(np.float64) + 0.5) * resolution).astype(np.float32)
-    colours = apply_lut(values, lo, hi, colormap_lut(cmap))
+    colours = colourise(values, lo, hi, cmap)
     if style == "points":
         return rr.Points3D(centres, colors=colours, radii=resolution / 2)
     return rr.Boxes3D(centers=centres, half_sizes=[resolution / 2] * 3, colors=colours,

@@ -1,4 +1,4 @@
-"""``mono-map eval --table``: the paper's Table IV for our data, plus a keep sweep.
+"""The paper's Table IV for our data, plus a keep sweep (``mono-map eval --table``).
 
 Builds (or reuses, cached under ``outputs/seq<SEQ>/``; a map is reused only if its .json records the
 same job: data root, model digest, settings, integration and frames) the LiDAR-FOV map, monocular maps
@@ -7,9 +7,9 @@ synthetic sequences) and the distribution-integrated map; scores each against th
 (``--reference lidar``: against the whole 360° LiDAR map, as the paper, where LiDAR-FOV is a scored
 row) — accuracy, coverage, occupied P/R/F1, memory, surface precision against depth-gt, and the
 calibration (ECE, reliability diagram) of the keep 1.0, keep 0.8 and distribution maps from their
-probabilistic ``.ot`` trees — and writes Markdown + JSON, a PNG of accuracy and memory against keep,
-the accuracy-vs-memory plot (keep sweep a curve, distribution a point), the reliability diagram and
-the top-down pictures.
+probabilistic ``.ot`` trees — and writes Markdown + JSON. The pictures (:func:`mono_map.viz.plots.plot_table`:
+accuracy and memory against keep, accuracy vs memory, the reliability diagram, top-down maps) are drawn
+by the command from the returned :class:`Table`.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from mono_map.config import OctoMapConfig
 from mono_map.frames import FrameSelection
 from mono_map.io import prepare_output_dir
 from mono_map.mapping.distribution import DistributionConfig
+from mono_map.mapping.jobs import MapJob
 from mono_map.paths import sequence_output_dir
 
 CALIBRATED = ("mono (keep 1.0)", "mono keep 0.8", "mono, distribution")   # rows with a .ot and an ECE
@@ -46,7 +47,22 @@ class TableJob:
     distribution: DistributionConfig = field(default_factory=DistributionConfig)
 
 
-def _cached(bt: Path, job: dict, build, need_ot: bool = False):
+@dataclass
+class Table:
+    """What :func:`run_table` scored and wrote: the rows, their Markdown, where they went, and what the
+    pictures need (reliability per calibrated row, (label, tree) pairs for the top-down maps)."""
+
+    rows: list[dict]
+    markdown: str
+    out_dir: Path
+    stem: str
+    reference: str
+    reliability: dict
+    topdown: list[tuple[str, object]]
+    extended: bool
+
+
+def _cached(bt: Path, job: MapJob, build, need_ot: bool = False):
     """Reuse ``bt`` if its .json says it was built by exactly ``job`` (data root, model digest,
     settings, frames) and, with ``need_ot``, its .ot is there; else build it again, saying why."""
     from mono_map.mapping.jobs import read_map_sidecar, reusable
@@ -62,13 +78,15 @@ def _cached(bt: Path, job: dict, build, need_ot: bool = False):
     return build()
 
 
-def run_table(job: TableJob) -> int:
+def run_table(job: TableJob) -> Table:
+    """Build (or reuse) every map of the table, score them, write ``<stem>.md`` and ``<stem>.json``."""
     from mono_map.data.prepare import prepare_sequence
-    from mono_map.eval.map_metrics import calibration, compare_leaves, load_tree, surface_precision, tree_leaves, tree_summary
+    from mono_map.eval.map_metrics import calibration, compare_leaves, surface_precision, tree_summary
     from mono_map.frames import frames_tag
     from mono_map.io import write_json_atomic, write_text_atomic
     from mono_map.mapping.build import load_predictor
-    from mono_map.mapping.jobs import build_and_write, job_key, map_stem, model_digest
+    from mono_map.mapping.jobs import build_and_write, model_digest
+    from mono_map.mapping.octree import load_tree, tree_leaves
 
     cfg = job.octomap
     dcfg = job.distribution
@@ -87,12 +105,11 @@ def run_table(job: TableJob) -> int:
     calibrated = CALIBRATED if extended else ()
 
     def cached_map(source, keep=1.0, stride=1, model=None, integrate="keep", write_ot=False):
-        bt = out_dir / f"{map_stem(source, keep, cfg, tag, stride, model, integrate, dcfg)}.bt"
         mono = source == "mono"
-        key = job_key(seq, source, keep, cfg, frames, stride, model, digest if mono else None, integrate, dcfg)
-        return _cached(bt, key, lambda: build_and_write(
-            seq, source, keep, cfg, frames, stride, model, out_dir, predictor=predictor if mono else None,
-            digest=digest if mono else None, integrate=integrate, dcfg=dcfg, write_ot=write_ot), need_ot=write_ot)
+        mj = MapJob.of(seq, source, frames, keep=keep, integrate=integrate, distribution=dcfg, octomap=cfg,
+                       stride=stride, model=model, digest=digest if mono else None)
+        return _cached(mj.path(out_dir), mj, lambda: build_and_write(
+            mj, seq, out_dir, predictor=predictor if mono else None, write_ot=write_ot), need_ot=write_ot)
 
     fov_bt, fov_stats = cached_map("lidar-fov")
     entries = [("LiDAR-FOV", "lidar-fov", None, fov_bt, fov_stats)]
@@ -145,24 +162,12 @@ def run_table(job: TableJob) -> int:
                                                   "model": job.model, "model_digest": digest, "rows": rows,
                                                   "distribution": dcfg.__dict__ if extended else None,
                                                   "reliability": reliability})
-    from mono_map.viz.plots import plot_accuracy_memory, plot_reliability, plot_sweep, render_topdown
-
-    ref_label = "LiDAR-FOV" if reference == "lidar-fov" else "LiDAR"
-    plot_sweep(rows, out_dir / f"{stem}_sweep.png", ref_label)
-    pngs = [f"{stem}_sweep.png"]
-    if extended:
-        plot_accuracy_memory(rows, out_dir / f"{stem}_acc_memory.png", ref_label)
-        plot_reliability(reliability, out_dir / f"{stem}_reliability.png", ref_label)
-        pngs += [f"{stem}_acc_memory.png", f"{stem}_reliability.png"]
-
     pics = [("LiDAR-FOV", trees["LiDAR-FOV"]), ("mono (keep 1.0)", trees["mono (keep 1.0)"]),
             ("mono keep 0.8", trees["mono keep 0.8"])]
     if extended:
         pics.append(("mono, distribution", trees["mono, distribution"]))
-    render_topdown(pics, out_dir / f"{stem}_topdown.png")
-    print(md)
-    print(f"wrote {out_dir / (stem + '.md')}, .json, {', '.join(pngs)}, {stem}_topdown.png")
-    return 0
+    return Table(rows=rows, markdown=md, out_dir=out_dir, stem=stem, reference=reference, reliability=reliability,
+                 topdown=pics, extended=extended)
 
 
 def _pct(v) -> str:

@@ -1,6 +1,6 @@
-"""Evaluate depth checkpoints on frames with ground truth: standard metrics (log / linear
-expectation, arg-max), sparsification curves + AUC (Table II), oracle hypotheses (Table III),
-ms/frame; report as JSON, Markdown and PNG plots.
+"""The depth evaluation behind ``mono-map eval-depth``: depth checkpoints on frames with ground truth —
+standard metrics (log / linear expectation, arg-max), sparsification curves + AUC (Table II), oracle
+hypotheses (Table III), ms/frame — and a Markdown report (the command writes JSON and the plots).
 """
 
 from __future__ import annotations
