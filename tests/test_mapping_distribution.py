@@ -7,7 +7,8 @@ import pytest
 
 from mono_map.config import OctoMapConfig
 from mono_map.errors import MonoMapError
-from mono_map.mapping.distribution import (check_distribution, distribution_update, expected_updates, far_depth)
+from mono_map.mapping.distribution import (check_distribution, distribution_update, expected_updates, far_depth,
+                                           quantise_updates)
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.octree import coord_to_key, key_to_coord, tree_leaves
 from mono_map.mapping.points import camera_origin, pixels_to_world
@@ -42,7 +43,8 @@ def tree_cells(tree) -> dict:
     return dict(zip(codes.tolist(), leaves.value[leaf].astype(np.float32).tolist()))
 
 
-def integrate_point_masses(integ: MapIntegrator, depth: np.ndarray, T: np.ndarray, cfg: OctoMapConfig):
+def integrate_point_masses(integ: MapIntegrator, depth: np.ndarray, T: np.ndarray, cfg: OctoMapConfig,
+                           quantum: float = 0.0):
     mask = np.ones(depth.shape, bool)
     v, u = np.nonzero(mask)
     d = depth[v, u].astype(np.float64)
@@ -51,7 +53,7 @@ def integrate_point_masses(integ: MapIntegrator, depth: np.ndarray, T: np.ndarra
     fd = far_depth(probs, np.zeros(len(d)), edges, 1e-3)
     assert np.array_equal(fd, d)
     upd = distribution_update(camera_origin(T), pixels_to_world(depth, mask, K, T), fd, probs, None, edges,
-                              cfg.resolution, integ.hit, integ.miss, cfg.max_range)
+                              cfg.resolution, integ.hit, integ.miss, cfg.max_range, quantum=quantum)
     return integ.insert_updates(upd)
 
 
@@ -83,6 +85,40 @@ def test_point_masses_reproduce_keep_1_bit_for_bit(max_range, weights_path):
     assert ca == cb                                       # same cells, same float32 log-odds
     assert keep.tree.memoryUsage() == dist.tree.memoryUsage()
     assert keep.tree.getNumLeafNodes() == dist.tree.getNumLeafNodes()
+
+
+def test_point_masses_reproduce_keep_1_with_quantised_updates():
+    """--quantum rounds only fractional updates: exact hits and misses, hence point masses, are untouched."""
+    cfg = OctoMapConfig(resolution=0.2)
+    keep, dist = MapIntegrator(cfg), MapIntegrator(cfg)
+    for i in range(3):
+        depth, T = depth_frame(i), pose(i)
+        keep.insert(pixels_to_world(depth, np.ones(depth.shape, bool), K, T), camera_origin(T))
+        integrate_point_masses(dist, depth, T, cfg, quantum=0.1)
+    assert tree_cells(keep.tree) == tree_cells(dist.tree)
+    assert keep.tree.memoryUsage() == dist.tree.memoryUsage()
+
+
+def test_quantised_updates_lie_on_the_lattice():
+    dl = np.array([HIT, MISS, 0.37, -0.26, 0.049, -0.051, 0.0], np.float32)
+    q = quantise_updates(dl, HIT, MISS, 0.1)
+    assert q[0] == HIT and q[1] == MISS                                  # exact updates kept
+    assert np.allclose(q[2:], [0.4, -0.3, 0.0, -0.1, 0.0], atol=1e-6)
+    assert (np.abs(q[2:] - dl[2:]) <= 0.05 + 1e-6).all()
+    assert np.array_equal(quantise_updates(dl, HIT, MISS, 0.0), dl)      # off
+    # a broad one-ray distribution: every update on the lattice, none zero, the sign of each kept
+    probs, edges = np.full(8, 0.1, np.float32), np.geomspace(4.0, 20.0, 9)
+    fd = far_depth(probs[None, :], np.array([0.2]), edges, 0.05)
+    far = ORIGIN + np.array([0.0, 0.0, fd[0]])
+    a = distribution_update(ORIGIN, far[None, :], fd, probs[None, :], np.array([0.2]), edges, 0.2, HIT, MISS)
+    b = distribution_update(ORIGIN, far[None, :], fd, probs[None, :], np.array([0.2]), edges, 0.2, HIT, MISS,
+                            quantum=0.1)
+    exact = (b.dl == HIT) | (b.dl == MISS)
+    assert exact.any() and (~exact).any() and (b.dl != 0).all()
+    assert np.allclose(b.dl[~exact], np.round(b.dl[~exact] / 0.1) * 0.1, atol=1e-6)
+    da = dict(zip(map(tuple, a.keys.tolist()), a.dl.tolist()))
+    for key, v in zip(map(tuple, b.keys.tolist()), b.dl.tolist()):
+        assert np.sign(v) == np.sign(da[key]) and abs(v - da[key]) <= 0.05 + 1e-6
 
 
 ORIGIN = np.array([0.1, 0.1, 0.05])   # on a cell centre in x and y: rays along +z stay on one cell column

@@ -63,6 +63,7 @@ def main(argv=None) -> int:
     p.add_argument("--ray-step", default=str(d.ray_step))
     p.add_argument("--temperature", default=str(d.temperature))
     p.add_argument("--bin-spread", default=str(d.bin_spread))
+    p.add_argument("--quantum", default=str(d.quantum))
     p.add_argument("--prob-hit", type=float, default=0.7)
     p.add_argument("--prob-miss", type=float, default=0.4)
     p.add_argument("--refs", default=None, help="directory with built lidar-fov / depth-gt maps of these frames")
@@ -83,16 +84,17 @@ def main(argv=None) -> int:
     predictor = load_predictor(None if args.model == "shipped" else args.model)
     edges = bin_edges(predictor)
     grid = [DistributionConfig(eps=float(e), min_update=float(m), ray_step=int(s), temperature=float(t),
-                               bin_spread=float(b))
-            for e, m, s, t, b in itertools.product(args.eps.split(","), args.min_update.split(","),
-                                                   args.ray_step.split(","), args.temperature.split(","),
-                                                   args.bin_spread.split(","))]
+                               bin_spread=float(b), quantum=float(q))
+            for e, m, s, t, b, q in itertools.product(args.eps.split(","), args.min_update.split(","),
+                                                      args.ray_step.split(","), args.temperature.split(","),
+                                                      args.bin_spread.split(","), args.quantum.split(","))]
     cands = {}
     for k in sorted({float(k) for k in args.keeps.split(",")}, reverse=True):
         cands["mono (keep 1.0)" if k == 1.0 else f"mono keep {k:g}"] = (k, MapIntegrator(cfg), [0.0])
     for g in grid:
         name = "mono, distribution" if len(grid) == 1 else (
-            f"dist eps {g.eps:g} min {g.min_update:g} step {g.ray_step} T {g.temperature:g} spread {g.bin_spread:g}")
+            f"dist eps {g.eps:g} min {g.min_update:g} step {g.ray_step} T {g.temperature:g} spread {g.bin_spread:g}"
+            f" q {g.quantum:g}")
         cands[name] = (g, MapIntegrator(cfg), [0.0])
     K = seq.calib.K2
     t_start = time.perf_counter()

@@ -143,7 +143,7 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
     fd = far_depth(p, pb, edges, dcfg.eps)
     upd = distribution_update(camera_origin(T_world_cam2), pixel_points_to_world(u, v, fd, K, T_world_cam2), fd,
                               p, pb, edges, integrator.cfg.resolution, integrator.hit, integrator.miss,
-                              integrator.cfg.max_range, dcfg.min_update)
+                              integrator.cfg.max_range, dcfg.min_update, dcfg.quantum)
     return integrator.insert_updates(upd), int(len(v))
 
 

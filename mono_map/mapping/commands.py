@@ -44,6 +44,9 @@ def _add_integration_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--bin-spread", type=float, default=d.bin_spread,
                    help=f"distribution: spread each bin's mass over this central fraction of the bin, placed at the "
                         f"pixel's local mean (default {d.bin_spread:g} = whole bins)")
+    g.add_argument("--quantum", type=float, default=d.quantum,
+                   help=f"distribution: round per-cell updates to multiples of this log-odds step, so free space "
+                        f"prunes (default {d.quantum:g} = off)")
     g.add_argument("--ray-step", type=int, default=d.ray_step,
                    help=f"distribution: one ray every N-th pixel row and column (default {d.ray_step})")
 
@@ -54,7 +57,7 @@ def distribution_config(args):
 
     return check_distribution_config(DistributionConfig(eps=args.eps, temperature=args.temperature,
                                                         ray_step=args.ray_step, min_update=args.min_update,
-                                                        bin_spread=args.bin_spread))
+                                                        bin_spread=args.bin_spread, quantum=args.quantum))
 
 
 def register(subparsers) -> None:

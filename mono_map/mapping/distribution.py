@@ -50,7 +50,9 @@ class DistributionConfig:
     when a ray says something about it (0 = keep all);
     bin_spread: each bin's mass spread over this central fraction of the bin (log-depth), the pattern
     shifted so the modal bin's mass sits at the pixel's local mean depth (1 = whole bins, unshifted;
-    see :func:`narrow_bins`).
+    see :func:`narrow_bins`);
+    quantum: per-cell updates rounded to multiples of this log-odds step (exact hits and misses kept), so
+    cells take values from a lattice and free space prunes as in a hard map (0 = off; :func:`quantise_updates`).
     """
 
     eps: float = 0.2           # chosen on training town 06 (docs/results.md), never on 00
@@ -58,6 +60,7 @@ class DistributionConfig:
     ray_step: int = 2          # ~ the network's input resolution (192×640 for 376×1241 images)
     min_update: float = 0.05
     bin_spread: float = 1.0
+    quantum: float = 0.0
 
 
 @dataclass
@@ -80,6 +83,8 @@ def check_distribution_config(cfg: DistributionConfig) -> DistributionConfig:
         raise MonoMapError(f"--bin-spread: must be in (0, 1], got {cfg.bin_spread}")
     if not (0.0 <= cfg.min_update < 0.4):
         raise MonoMapError(f"--min-update: must be in [0, 0.4) (log-odds), got {cfg.min_update}")
+    if not (0.0 <= cfg.quantum <= 0.5):
+        raise MonoMapError(f"--quantum: must be in [0, 0.5] (log-odds; 0 = off), got {cfg.quantum}")
     if int(cfg.ray_step) != cfg.ray_step or cfg.ray_step < 1:
         raise MonoMapError(f"--ray-step: must be a positive integer, got {cfg.ray_step}")
     return cfg
@@ -160,6 +165,18 @@ def narrow_bins(probs: np.ndarray, edges: np.ndarray, spread: float) -> tuple[np
     return out_probs, out_edges
 
 
+def quantise_updates(dl: np.ndarray, hit: float, miss: float, quantum: float) -> np.ndarray:
+    """float32 per-cell updates rounded to the nearest multiple of ``quantum`` (log-odds); values exactly
+    equal to the float32 hit or miss update are kept, so point masses still give the hard map bit for bit.
+    Zeros mean "no update" (the caller drops them). ``quantum`` 0: unchanged."""
+    dl = np.asarray(dl, dtype=np.float32)
+    if quantum <= 0:
+        return dl
+    exact = (dl == np.float32(hit)) | (dl == np.float32(miss))
+    q = (np.round(dl.astype(np.float64) / quantum) * quantum).astype(np.float32)
+    return np.where(exact, dl, q)
+
+
 def cdf(probs: np.ndarray, edges: np.ndarray, z: np.ndarray) -> np.ndarray:
     """P(surface < z) for every pixel (rows) and depth z ((N, M) or (M,) metres) — right-continuous at point masses."""
     p = np.asarray(probs, dtype=np.float64)
@@ -211,13 +228,13 @@ def far_depth(probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, eps: f
 
 def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: np.ndarray, probs: np.ndarray,
                         p_beyond: np.ndarray | None, edges: np.ndarray, resolution: float, hit: float, miss: float,
-                        max_range: float = -1.0, min_update: float = 0.0) -> CellUpdates:
+                        max_range: float = -1.0, min_update: float = 0.0, quantum: float = 0.0) -> CellUpdates:
     """One frame's per-cell updates (see the module docstring).
 
     origin: (3,) camera centre (world, metres); far_points: (N, 3) each pixel's point at its far depth
     (world); far_depths: (N,) those depths (metres, as ``edges``); probs (N, K), p_beyond (N,) or None,
     edges (K+1,) or (N, K+1): the distributions; hit, miss: float32 log-odds of the sensor model;
-    min_update: weaker updates are dropped.
+    min_update: weaker updates are dropped; quantum: updates rounded (:func:`quantise_updates`).
     """
     from mono_map.mapping.raycast_c import load_kernel, ray_weights_c
 
@@ -252,4 +269,8 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
     lin, dl = ray_weights_c(kernel, origin32, key_origin, ends, end_keys, inside, scale, probs, pb, edges,
                             hit, miss, res, box.lo, box.strides, TREE_MAX_VAL, box.size, min_update=min_update,
                             dense=box.size <= _DENSE_MAX_CELLS)
+    if quantum > 0:
+        dl = quantise_updates(dl, hit, miss, quantum)
+        kept = dl != 0
+        lin, dl = lin[kept], dl[kept]
     return CellUpdates(keys=box.keys(lin), dl=dl, n_rays=len(pts), lo=box.lo, hi=box.lo + box.dims - 1)

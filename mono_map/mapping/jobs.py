@@ -158,7 +158,8 @@ class MapJob:
                      + (f"-temp{dcfg.temperature:g}" if dcfg.temperature != dd.temperature else "")
                      + (f"-step{dcfg.ray_step}" if dcfg.ray_step != dd.ray_step else "")
                      + (f"-min{dcfg.min_update:g}" if dcfg.min_update != dd.min_update else "")
-                     + (f"-spread{dcfg.bin_spread:g}" if dcfg.bin_spread != dd.bin_spread else "")]
+                     + (f"-spread{dcfg.bin_spread:g}" if dcfg.bin_spread != dd.bin_spread else "")
+                     + (f"-q{dcfg.quantum:g}" if dcfg.quantum != dd.quantum else "")]
         else:
             parts = [self.source if not self.mono else f"mono-keep{self.keep:g}"]
         if self.mono and self.model:
