@@ -388,7 +388,7 @@ def test_p_beyond_is_mass_beyond_every_cell_and_probs_are_conditional():
     np.put_along_axis(probs, idx[None], 1.0, axis=0)                 # conditional: each pixel sums to 1
     pb = np.full(depth.shape, 0.3, np.float32)
     pb[:, :8] = 0.9                                                  # nothing within range: skipped at eps 0.2
-    dcfg = DistributionConfig(eps=0.2, ray_step=1, min_update=0.0)
+    dcfg = DistributionConfig(eps=0.2, ray_step=1, min_update=0.0, temperature=1.0, quantum=0.0)
     valid = np.ones(depth.shape, bool)
 
     got = MapIntegrator(cfg)
