@@ -38,7 +38,7 @@ def _add_integration_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--eps", type=float, default=d.eps,
                    help=f"distribution: rays stop where P(surface beyond) < eps (default {d.eps:g})")
     g.add_argument("--temperature", type=float, default=d.temperature,
-                   help=f"distribution: probabilities p^(1/T), renormalised (default {d.temperature:g} = as predicted)")
+                   help=f"distribution: probabilities p^(1/T), renormalised (default {d.temperature:g}; 1 = as predicted)")
     g.add_argument("--min-update", type=float, default=d.min_update,
                    help=f"distribution: drop per-cell updates weaker than this log-odds magnitude (default {d.min_update:g})")
     g.add_argument("--bin-spread", type=float, default=d.bin_spread,
