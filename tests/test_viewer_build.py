@@ -26,6 +26,9 @@ def test_short_build_writes_recording_with_expected_paths_and_frames(tiny_root, 
               "/stats/frames_per_s", "/stats/memory_mb", "/stats/leaf_count", "/stats/kept_fraction"):
         assert p in rows, p
     assert "/frame/depth" not in rows  # a LiDAR source has no predicted depth
+    # leaf count / memory only where measured (first and last frame here, stats_every 100): no stale values
+    assert sorted(f for f, _ in rows["/stats/leaf_count"] if f is not None) == [frames[0], frames[-1]]
+    assert sorted(f for f, _ in rows["/stats/frames_per_s"] if f is not None) == frames
     if "/world/camera/image" in rows:  # LiDAR builds may or may not pass image_2 along
         assert sorted(f for f, _ in rows["/world/camera/image"]) == frames
     pinhole = [e for _, e in rows["/world/camera"] if e.get("Pinhole:resolution")]

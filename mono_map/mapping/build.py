@@ -254,12 +254,13 @@ class MapBuilder:
         self.points_kept += n_used
         self.rays_cast += res.keys.n_rays
         n = len(self.per_frame) + 1
-        if n == 1 or n % self.stats_every == 0 or n == self.n_frames:  # first frame too: no zeros in the plots
+        measured = n == 1 or n % self.stats_every == 0 or n == self.n_frames  # first frame too: no zeros in the plots
+        if measured:
             self.last = self.integrator.stats()
         elapsed = time.perf_counter() - self.t_start
         fstats = {"index": int(i), "frames_per_s": n / elapsed if elapsed > 0 else 0.0,
                   "frame_s": time.perf_counter() - t_frame,
-                  "memory_mb": self.last["memory_mb"], "leaf_count": self.last["leaf_count"],
+                  "memory_mb": self.last["memory_mb"], "leaf_count": self.last["leaf_count"], "tree_measured": measured,
                   "kept_fraction": m.kept_fraction, "mean_entropy": m.mean_entropy, "n_points": int(n_used),
                   "n_rays": int(res.keys.n_rays), "free_cells": int(len(res.keys.free)),
                   "occupied_cells": int(len(res.keys.occupied))}

@@ -300,8 +300,11 @@ class RerunMapLogger:
             self._flush_map()
 
         stats = dict(getattr(update, "stats", {}) or {})
+        measured = stats.get("tree_measured", True)    # leaf count / memory are measured every N frames
         for name in STAT_NAMES:
             v = stats.get(name)
+            if name in ("memory_mb", "leaf_count") and not measured:
+                continue                                  # carried over, not measured: not a data point
             if v is not None and np.isfinite(v):
                 rec.log(f"stats/{name}", rr.Scalars(float(v)))
         rec.log("stats/map_cells", rr.Scalars(float(self.map_cells)))
