@@ -71,10 +71,13 @@ static inline int64_t dda_step(int64_t *cur, const int *step, double *tMax, cons
 
 /* computeRayKeys(origin, end) for n ends. With mark == NULL: writes the linear indices to out
    (the origin cell first for every ray that leaves it) and returns their number, or -1 if cap is
-   too small. With mark (a zeroed bitmap of mark_size bytes over the box): writes each index only the
-   first time (setting mark[index] = 1), so out holds the distinct cells; -2 if an index falls outside. */
+   too small. With mark (a bitmap of mark_size bytes over the box, 0 = not seen): writes each index
+   whose mark is 0 (setting it to 1), so out holds the distinct unmarked cells; -2 if an index falls
+   outside. Cells pre-marked (e.g. 2 = occupied this frame) are skipped. The mark is set with an atomic
+   exchange, so several threads may share one bitmap: each cell is written by exactly one of them. */
 #define EMIT(x) do { if (mark) { if ((x) < 0 || (x) >= mark_size) return -2; \
-        if (!mark[(x)]) { if (off >= cap) return -1; mark[(x)] = 1; out[off++] = (x); } } \
+        if (!mark[(x)] && !__atomic_exchange_n(mark + (x), (uint8_t) 1, __ATOMIC_RELAXED)) { \
+            if (off >= cap) return -1; out[off++] = (x); } } \
         else { if (off >= cap) return -1; out[off++] = (x); } } while (0)
 int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float *ends,
                      const int64_t *key_ends, int64_t n, double res, const int64_t *lo,
@@ -222,6 +225,120 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
     }
     return off;
 }
+
+/* coordToKey for n float64 points (OctoMap: (int) floor(resolution_factor * (double)(float) p) + tree_max_val):
+   float32 copies to pts32, keys to keys (n x 3), their inclusive bounds to lo / hi; returns the number of
+   points whose key is outside [0, 2 * tree_max_val) (their keys are then meaningless). */
+int64_t mm_point_keys(const double *pts, int64_t n, double rf, int64_t tree_max_val, float *pts32,
+                      int64_t *keys, int64_t *lo, int64_t *hi)
+{
+    int64_t bad = 0;
+    for (int a = 0; a < 3; ++a) { lo[a] = INT64_MAX; hi[a] = INT64_MIN; }
+    for (int64_t i = 0; i < 3 * n; i += 3) {
+        for (int a = 0; a < 3; ++a) {
+            float f = (float) pts[i + a];
+            pts32[i + a] = f;
+            double c = floor(rf * (double) f);
+            if (!(c >= (double) -tree_max_val && c < (double) tree_max_val)) { ++bad; keys[i + a] = 0; continue; }
+            int64_t k = (int64_t) c + tree_max_val;
+            keys[i + a] = k;
+            if (k < lo[a]) lo[a] = k;
+            if (k > hi[a]) hi[a] = k;
+        }
+    }
+    return bad;
+}
+
+/* computeDiscreteUpdate's deduplication through the box bitmap: for each of n keys, the first one in its cell
+   sets mark[cell] = 2 and writes its row to rows and, with centres, its cell centre (float) to centres;
+   returns the count (-2: a key outside the box). */
+int64_t mm_unique_cells(const int64_t *keys, int64_t n, const int64_t *lo, const int64_t *strides, uint8_t *mark,
+                        int64_t mark_size, double res, int64_t tree_max_val, int64_t *rows, float *centres)
+{
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; ++i) {
+        const int64_t *k = keys + 3 * i;
+        int64_t x = box_index(k, lo, strides);
+        if (x < 0 || x >= mark_size) return -2;
+        if (mark[x] == 2) continue;
+        mark[x] = 2;
+        rows[m] = i;
+        if (centres)
+            for (int a = 0; a < 3; ++a)
+                centres[3 * m + a] = (float) (((double) (k[a] - tree_max_val) + 0.5) * res);
+        ++m;
+    }
+    return m;
+}
+
+/* Keys (n x 3) of linear box indices (KeyBox.keys). */
+void mm_box_keys(const int64_t *lin, int64_t n, const int64_t *lo, const int64_t *strides, int64_t *keys)
+{
+    const int64_t s0 = strides[0], s1 = strides[1];
+    for (int64_t i = 0; i < n; ++i) {
+        int64_t a = lin[i] / s0, r = lin[i] - a * s0;
+        int64_t b = r / s1;
+        keys[3 * i] = a + lo[0];
+        keys[3 * i + 1] = b + lo[1];
+        keys[3 * i + 2] = r - b * s1 + lo[2];
+    }
+}
+
+/* The log-odds mirror (mono_map/mapping/integrate.py, LogOddsMirror): blocks of 8x8x8 cells, slot table[flat]
+   (int32, -1 = none) over a dense box of blocks (low corner tlo, shape tsh); cell (x, y, z) of a block at
+   pool[slot * 512 + (x & 7) * 64 + (y & 7) * 8 + (z & 7)]. */
+static inline int64_t block_flat(const int64_t *k, const int64_t *tlo, const int64_t *tsh)
+{
+    int64_t b0 = (k[0] >> 3) - tlo[0], b1 = (k[1] >> 3) - tlo[1], b2 = (k[2] >> 3) - tlo[2];
+    if (b0 < 0 || b0 >= tsh[0] || b1 < 0 || b1 >= tsh[1] || b2 < 0 || b2 >= tsh[2]) return -1;
+    return (b0 * tsh[1] + b1) * tsh[2] + b2;
+}
+
+/* Give every block of the n keys a slot: missing blocks get slots n_blocks, n_blocks + 1, ... in order of first
+   appearance, their flat table indices written to new_flat; returns how many (-2: a key outside the table). */
+int64_t mm_mirror_alloc(const int64_t *keys, int64_t n, int32_t *table, const int64_t *tlo, const int64_t *tsh,
+                        int64_t n_blocks, int64_t *new_flat)
+{
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; ++i) {
+        int64_t f = block_flat(keys + 3 * i, tlo, tsh);
+        if (f < 0) return -2;
+        if (table[f] < 0) { table[f] = (int32_t) (n_blocks + m); new_flat[m++] = f; }
+    }
+    return m;
+}
+
+/* OctoMap's updateNode(key, log-odds update) for n distinct cells on the mirror (every block allocated): a cell
+   already clamped in the update's direction is left alone (updateNode's early abort), otherwise
+   new = clamp((known ? old : 0) + u) (float arithmetic), dirty[cell] = 1. upd: per-key updates, or NULL for
+   u_all. Rows whose occupied state (>= thres) flipped go to flip_rows (count in *n_flip). Returns the number of
+   cells changed, -2 if a block is missing. */
+int64_t mm_mirror_apply(const int64_t *keys, int64_t n, const float *upd, float u_all, const int32_t *table,
+                        const int64_t *tlo, const int64_t *tsh, float *pool, uint8_t *dirty, float cmin,
+                        float cmax, float thres, int64_t *flip_rows, int64_t *n_flip)
+{
+    int64_t changed = 0, nf = 0;
+    for (int64_t i = 0; i < n; ++i) {
+        const int64_t *k = keys + 3 * i;
+        int64_t f = block_flat(k, tlo, tsh);
+        if (f < 0 || table[f] < 0) return -2;
+        int64_t x = (int64_t) table[f] * 512 + ((k[0] & 7) << 6) + ((k[1] & 7) << 3) + (k[2] & 7);
+        float u = upd ? upd[i] : u_all;
+        float old = pool[x];
+        int known = !isnan(old);
+        if (known && ((u >= 0.0f && old >= cmax) || (u <= 0.0f && old <= cmin))) continue;
+        float v = (known ? old : 0.0f) + u;
+        if (v < cmin) v = cmin;
+        if (v > cmax) v = cmax;
+        pool[x] = v;
+        dirty[x] = 1;
+        ++changed;
+        int was = known && old >= thres, is = v >= thres;
+        if (was != is) flip_rows[nf++] = i;
+    }
+    *n_flip = nf;
+    return changed;
+}
 """
 
 _LIB = None
@@ -271,6 +388,15 @@ def load_kernel():
         ffn.argtypes = [p, p, p, i64, i64, i64, f64, p]
         ffn.restype = None
         fn.far_depth = ffn
+        for name, args in (("point_keys", [p, i64, f64, i64, p, p, p, p]),
+                           ("unique_cells", [p, i64, p, p, p, i64, f64, i64, p, p]),
+                           ("box_keys", [p, i64, p, p, p]),
+                           ("mirror_alloc", [p, i64, p, p, p, i64, p]),
+                           ("mirror_apply", [p, i64, p, f32, p, p, p, p, p, f32, f32, f32, p, p])):
+            cfn = getattr(lib, "mm_" + name)
+            cfn.argtypes = args
+            cfn.restype = None if name == "box_keys" else i64
+            setattr(fn, name, cfn)
         _LIB = fn
     except (OSError, subprocess.SubprocessError) as exc:
         print(f"mono-map: note: compiled ray kernel unavailable ({type(exc).__name__}); using numpy", file=sys.stderr)
@@ -326,9 +452,10 @@ def _distinct_cells(fn, o, ko, resolution, lo, st, tree_max_val, e, ke, mark) ->
 def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.ndarray, key_ends: np.ndarray,
                 resolution: float, lo: np.ndarray, strides: np.ndarray, tree_max_val: int,
                 mark: np.ndarray | None = None) -> np.ndarray | int:
-    """Run the kernel; returns linear box indices (int64, with repeats), or with ``mark`` (zeroed
-    uint8 bitmap over the box) the distinct indices, marking them 1 in ``mark`` (on two threads
-    for large frames: same set of cells, see ``_threads``)."""
+    """Run the kernel; returns linear box indices (int64, with repeats), or with ``mark`` (uint8 bitmap
+    over the box, 0 = unseen) the distinct indices of unmarked cells, marking them 1 in ``mark`` (cells
+    already marked, e.g. 2 = occupied, are skipped). Large frames run on two threads sharing the bitmap
+    (the kernel marks atomically, so each cell comes from one thread): same set of cells, see ``_threads``."""
     o = np.ascontiguousarray(origin32, dtype=np.float32)
     ko = np.ascontiguousarray(key_origin, dtype=np.int64)
     e = np.ascontiguousarray(ends32, dtype=np.float32)
@@ -340,17 +467,13 @@ def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.nda
         args = (o, ko, resolution, lo, st, tree_max_val)
         if len(e) < _PARALLEL_MIN_RAYS or _threads() < 2:
             return _distinct_cells(fn, *args, e, ke, mark)
-        # two halves of equal DDA work on two threads (ctypes releases the GIL), each deduplicating
-        # into its own bitmap; the union keeps the second half's cells the first did not have
+        # two halves of equal DDA work on two threads (ctypes releases the GIL), deduplicating into
+        # the one shared bitmap (consecutive rays, mostly neighbours, stay on one thread)
         steps = np.cumsum(np.abs(ke - ko[None, :]).sum(axis=1))
         cut = int(np.searchsorted(steps, steps[-1] / 2))
-        mark_b = np.zeros(mark.shape, dtype=np.uint8)  # calloc: pages are touched only where rays go
-        future = _pool().submit(_distinct_cells, fn, *args, e[cut:], ke[cut:], mark_b)
+        future = _pool().submit(_distinct_cells, fn, *args, e[cut:], ke[cut:], mark)
         first = _distinct_cells(fn, *args, e[:cut], ke[:cut], mark)
-        second = future.result()
-        second = second[mark[second] == 0]
-        mark[second] = 1
-        return np.concatenate([first, second])
+        return np.concatenate([first, future.result()])
     cap = _capacity(ke, ko)
     while True:
         out = np.empty(cap, dtype=np.int64)
@@ -466,3 +589,83 @@ def far_depth_c(fn, probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, 
     fn.far_depth(pr.ctypes.data, pb.ctypes.data, ed.ctypes.data, 0 if ed.ndim == 1 else ed.shape[1], pr.shape[1],
                  len(pr), float(eps), out.ctypes.data)
     return out
+
+
+def point_keys_c(fn, points: np.ndarray, resolution: float, tree_max_val: int):
+    """``mm_point_keys``: (float32 points (N, 3), int64 keys (N, 3), key lo (3,), key hi (3,), #points out of range)."""
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    n = len(pts)
+    pts32 = np.empty((n, 3), dtype=np.float32)
+    keys = np.empty((n, 3), dtype=np.int64)
+    lo, hi = np.empty(3, dtype=np.int64), np.empty(3, dtype=np.int64)
+    bad = fn.point_keys(pts.ctypes.data, n, 1.0 / float(resolution), int(tree_max_val), pts32.ctypes.data,
+                        keys.ctypes.data, lo.ctypes.data, hi.ctypes.data)
+    return pts32, keys, lo, hi, int(bad)
+
+
+def unique_cells_c(fn, keys: np.ndarray, lo: np.ndarray, strides: np.ndarray, mark: np.ndarray,
+                   resolution: float, tree_max_val: int, centres: bool = True):
+    """``mm_unique_cells``: (rows of the first key in each cell, float32 cell centres of those rows or None);
+    marks those cells 2 in ``mark``."""
+    k = np.ascontiguousarray(keys, dtype=np.int64)
+    rows = np.empty(len(k), dtype=np.int64)
+    cen = np.empty((len(k), 3), dtype=np.float32) if centres else None
+    m = fn.unique_cells(k.ctypes.data, len(k), np.ascontiguousarray(lo, dtype=np.int64).ctypes.data,
+                        np.ascontiguousarray(strides, dtype=np.int64).ctypes.data, mark.ctypes.data, len(mark),
+                        float(resolution), int(tree_max_val), rows.ctypes.data, None if cen is None else cen.ctypes.data)
+    if m < 0:
+        raise AssertionError("key outside its bounding box")   # the box is built from these keys
+    return rows[:m], None if cen is None else cen[:m]
+
+
+def box_keys_c(fn, lin: np.ndarray, lo: np.ndarray, strides: np.ndarray) -> np.ndarray:
+    """``mm_box_keys``: (N, 3) int64 keys of linear box indices."""
+    lin = np.ascontiguousarray(lin, dtype=np.int64)
+    out = np.empty((len(lin), 3), dtype=np.int64)
+    fn.box_keys(lin.ctypes.data, len(lin), np.ascontiguousarray(lo, dtype=np.int64).ctypes.data,
+                np.ascontiguousarray(strides, dtype=np.int64).ctypes.data, out.ctypes.data)
+    return out
+
+
+def mirror_alloc_c(fn, keys: np.ndarray, table: np.ndarray, table_lo: np.ndarray, n_blocks: int) -> np.ndarray:
+    """``mm_mirror_alloc``: flat table indices of the blocks of ``keys`` that had no slot (now slots
+    n_blocks, n_blocks + 1, ... in that order)."""
+    assert table.dtype == np.int32 and table.flags.c_contiguous
+    shape = np.array(table.shape, dtype=np.int64)
+    out = np.empty(min(len(keys), table.size), dtype=np.int64)
+    m = fn.mirror_alloc(keys.ctypes.data, len(keys), table.ctypes.data,
+                        np.ascontiguousarray(table_lo, dtype=np.int64).ctypes.data, shape.ctypes.data, int(n_blocks),
+                        out.ctypes.data)
+    if m < 0:
+        raise AssertionError("key outside the mirror's block table")   # the caller grows the table first
+    return out[:m]
+
+
+def mirror_apply_c(fn, keys: np.ndarray, update, table: np.ndarray, table_lo: np.ndarray, pool: np.ndarray,
+                   dirty: np.ndarray, cmin, cmax, thres) -> tuple[int, np.ndarray]:
+    """``mm_mirror_apply``: OctoMap's clamped update of distinct cells ``keys`` by ``update`` (float32 scalar or
+    (N,) array); returns (#cells changed, rows of ``keys`` whose occupied state flipped)."""
+    assert pool.dtype == np.float32 and dirty.dtype == np.bool_ and table.dtype == np.int32
+    upd = None if np.ndim(update) == 0 else np.ascontiguousarray(update, dtype=np.float32)
+    shape = np.array(table.shape, dtype=np.int64)
+    flips = np.empty(len(keys), dtype=np.int64)
+    n_flip = np.zeros(1, dtype=np.int64)
+    n = fn.mirror_apply(keys.ctypes.data, len(keys), None if upd is None else upd.ctypes.data,
+                        float(update) if upd is None else 0.0, table.ctypes.data,
+                        np.ascontiguousarray(table_lo, dtype=np.int64).ctypes.data, shape.ctypes.data,
+                        pool.ctypes.data, dirty.ctypes.data, float(cmin), float(cmax), float(thres),
+                        flips.ctypes.data, n_flip.ctypes.data)
+    if n < 0:
+        raise AssertionError("mirror block missing")   # mirror_alloc_c runs first
+    return int(n), flips[:int(n_flip[0])]
+
+
+_MARK: list[np.ndarray] = [np.zeros(0, dtype=np.uint8)]
+
+
+def zeroed_bitmap(size: int) -> np.ndarray:
+    """A zeroed uint8 bitmap of ``size`` cells, reused across frames (as the accumulators); the caller
+    zeroes the cells it marked before the next frame."""
+    if len(_MARK[0]) < size:
+        _MARK[0] = np.zeros(max(size, int(len(_MARK[0]) * 1.25)), dtype=np.uint8)
+    return _MARK[0][:size]
