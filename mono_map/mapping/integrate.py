@@ -387,10 +387,7 @@ class MapIntegrator:
         idx, new, old = idx[moved], new[moved], old[moved]
         self.n_known = getattr(self, "n_known", 0) + int(np.isnan(old).sum())
         if len(idx) > self.REBUILD_RATIO * self.n_known or self._many_increments(new, old):
-            from mono_map.mapping.octree_io import octree_from_cells
-
-            known = np.flatnonzero(~np.isnan(m.pool[:used]))
-            self._tree = octree_from_cells(m.keys_of(known), m.pool[known], self.cfg)
+            self._tree = self._rebuilt_tree()
             m.synced[:used] = m.pool[:used]
             self.rebuilds = getattr(self, "rebuilds", 0) + 1
         elif len(idx):
@@ -407,6 +404,24 @@ class MapIntegrator:
         dt = time.perf_counter() - t0
         self.sync_seconds += dt
         return dt
+
+    def _rebuilt_tree(self):
+        """A new octree holding exactly the mirror's known cells (one .ot stream read by OctoMap)."""
+        from mono_map.mapping.raycast_c import load_kernel, ot_nodes_c
+
+        m = self.mirror
+        kernel = load_kernel()
+        if kernel is None or m.n_blocks == 0:
+            from mono_map.mapping.octree_io import octree_from_cells
+
+            known = np.flatnonzero(~np.isnan(m.pool[:m.n_blocks * m.CELLS]))
+            return octree_from_cells(m.keys_of(known), m.pool[known], self.cfg)
+        import octomap
+
+        from mono_map.mapping.octree_io import ot_header
+
+        nodes, n = ot_nodes_c(kernel, m.pool, m.block_keys[:m.n_blocks], m.CELLS)   # straight from the blocks
+        return apply_sensor_model(octomap.OcTree.read(ot_header(n, self.cfg.resolution) + nodes), self.cfg)
 
     MAX_GROUPS = 2048   # distinct increments beyond which one updateNodes call per group costs more than a rebuild
 
