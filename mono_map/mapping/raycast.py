@@ -129,7 +129,12 @@ class KeyBox:
         return (keys - self.lo) @ self.strides
 
     def keys(self, lin: np.ndarray) -> np.ndarray:
+        from mono_map.mapping.raycast_c import box_keys_c, load_kernel
+
         lin = np.asarray(lin, dtype=np.int64)
+        kernel = load_kernel()
+        if kernel is not None:
+            return box_keys_c(kernel, lin, self.lo, self.strides)
         k0, rem = _divmod(lin, int(self.strides[0]))
         k1, k2 = _divmod(rem, int(self.strides[1]))
         out = np.empty((len(lin), 3), dtype=np.int64)
@@ -345,7 +350,7 @@ def _compute_update_c(kernel, pts: np.ndarray, origin32: np.ndarray, key_origin:
     deduplicated through it, marking the occupied cells 2 (``computeDiscreteUpdate``); the rays then
     mark and emit only cells still 0 — the free cells minus the occupied ones (occupied wins), each once.
     """
-    from mono_map.mapping.raycast_c import box_keys_c, point_keys_c, ray_cells_c, unique_cells_c, zeroed_bitmap
+    from mono_map.mapping.raycast_c import point_keys_c, ray_cells_c, unique_cells_c, zeroed_bitmap
 
     pts32, keys, lo, hi, n_out = point_keys_c(kernel, pts, res, TREE_MAX_VAL)
     if n_out:
@@ -390,6 +395,6 @@ def _compute_update_c(kernel, pts: np.ndarray, origin32: np.ndarray, key_origin:
         raise
     mark[free_lin] = 0                   # leave the reused bitmap zeroed
     mark[occ_lin] = 0
-    free = box_keys_c(kernel, free_lin, box.lo, box.strides)
+    free = box.keys(free_lin)
     return KeySets(free=free, occupied=occ_keys, n_rays=n_rays, n_endpoints=len(occ_keys),
                    lo=box.lo, hi=box.lo + box.dims - 1)

@@ -59,13 +59,13 @@ static inline float dda_setup(const float *origin, const float *e, const int64_t
     return length;
 }
 
-/* One DDA step (the axis whose border is nearest); returns the linear-index change. */
-static inline int64_t dda_step(int64_t *cur, const int *step, double *tMax, const double *tDelta, const int64_t *dl)
+/* One DDA step (the axis whose border is nearest); returns the linear-index change (the key changes by
+   step[dim] on that axis: tracking the linear index alone suffices, cur == key_end <=> lin == lin_end). */
+static inline int64_t dda_step(double *tMax, const double *tDelta, const int64_t *dl)
 {
     int dim;
     if (tMax[0] < tMax[1]) dim = (tMax[0] < tMax[2]) ? 0 : 2;
     else dim = (tMax[1] < tMax[2]) ? 1 : 2;
-    cur[dim] += step[dim];
     tMax[dim] += tDelta[dim];
     return dl[dim];
 }
@@ -96,7 +96,7 @@ int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float
         int step[3];
         double tMax[3], tDelta[3];
         const float length = dda_setup(origin, e, key_origin, res, tree_max_val, step, tMax, tDelta);
-        /* dda_step on scalars, the axis chosen without branches; cur == key_end <=> lin == lin_end */
+        /* dda_step on scalars (the compiler keeps them in registers) */
         const int64_t lin_end = box_index(ke, lo, strides);
         const int64_t d0 = step[0] * strides[0], d1 = step[1] * strides[1], d2 = step[2] * strides[2];
         double t0 = tMax[0], t1 = tMax[1], t2 = tMax[2];
@@ -202,16 +202,16 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
         }
         int step[3];
         double tMax[3], tDelta[3];
-        int64_t cur[3] = {key_origin[0], key_origin[1], key_origin[2]};
         const float length = dda_setup(origin, e, key_origin, res, tree_max_val, step, tMax, tDelta);
         int64_t lin = lin_o;
+        const int64_t lin_end = box_index(ke, lo, strides);
         const int64_t dl[3] = {step[0] * strides[0], step[1] * strides[1], step[2] * strides[2]};
         double c_in = cdf_at(0.0, p, ed, K, &k, &cum);
         double t_out = fmin(fmin(tMax[0], tMax[1]), tMax[2]);
         int64_t cell = lin_o;            /* the cell being left, entered with CDF c_in */
         for (;;) {
-            lin += dda_step(cur, step, tMax, tDelta, dl);
-            int at_end = cur[0] == ke[0] && cur[1] == ke[1] && cur[2] == ke[2];
+            lin += dda_step(tMax, tDelta, dl);
+            int at_end = lin == lin_end;
             double dist = tMax[0] < tMax[1] ? tMax[0] : tMax[1];
             dist = dist < tMax[2] ? dist : tMax[2];
             int stop = at_end || dist > (double) length;
@@ -223,8 +223,7 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
                     double t_end = dist > (double) length ? dist : (double) length;
                     if (!at_end) t_end = (double) length > t_out ? (double) length : t_out;
                     double c_end = cdf_at(t_end * sc, p, ed, K, &k, &cum);
-                    PUT(lin_o + (ke[0] - key_origin[0]) * strides[0] + (ke[1] - key_origin[1]) * strides[1]
-                        + (ke[2] - key_origin[2]) * strides[2],
+                    PUT(lin_end,
                         (float) ((c_end - c_out) * (double) hit + (mass - c_end + pb) * (double) miss));
                 }
                 break;
