@@ -76,14 +76,14 @@ static inline int64_t dda_step(double *tMax, const double *tDelta, const int64_t
    whose mark is 0 (setting it to 1), so out holds the distinct unmarked cells; -2 if an index falls
    outside. Cells pre-marked (e.g. 2 = occupied this frame) are skipped. The mark is set with an atomic
    exchange, so several threads may share one bitmap: each cell is written by exactly one of them. */
-#define EMIT(x) do { if (mark) { if ((x) < 0 || (x) >= mark_size) return -2; \
+#define EMIT(x) do { if (mark) { if ((uint64_t) (x) >= (uint64_t) mark_size) return -2; \
         if (!mark[(x)] && !__atomic_exchange_n(mark + (x), (uint8_t) 1, __ATOMIC_RELAXED)) { \
             if (off >= cap) return -1; out[off++] = (x); } } \
         else { if (off >= cap) return -1; out[off++] = (x); } } while (0)
-int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float *ends,
-                     const int64_t *key_ends, int64_t n, double res, const int64_t *lo,
-                     const int64_t *strides, int64_t tree_max_val, int64_t *out, int64_t cap,
-                     uint8_t *mark, int64_t mark_size)
+static inline int64_t ray_cells(const float *origin, const int64_t *key_origin, const float *ends,
+                                const int64_t *key_ends, int64_t n, double res, const int64_t *lo,
+                                const int64_t *strides, int64_t tree_max_val, int64_t *out, int64_t cap,
+                                uint8_t *mark, int64_t mark_size)
 {
     int64_t off = 0;
     const int64_t lin_o = box_index(key_origin, lo, strides);
@@ -103,15 +103,9 @@ int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float
         const double dt0 = tDelta[0], dt1 = tDelta[1], dt2 = tDelta[2], len = (double) length;
         int64_t lin = lin_o;
         for (;;) {
-            const int c01 = t0 < t1;
-            const int is0 = c01 & (t0 < t2);
-            const int is1 = (!c01) & (t1 < t2);
-            const int is2 = !(is0 | is1);
-            lin += is0 ? d0 : (is1 ? d1 : d2);
-            const double n0 = t0 + dt0, n1 = t1 + dt1, n2 = t2 + dt2;
-            t0 = is0 ? n0 : t0;
-            t1 = is1 ? n1 : t1;
-            t2 = is2 ? n2 : t2;
+            if (t0 < t1) {
+                if (t0 < t2) { lin += d0; t0 += dt0; } else { lin += d2; t2 += dt2; }
+            } else if (t1 < t2) { lin += d1; t1 += dt1; } else { lin += d2; t2 += dt2; }
             if (lin == lin_end) break;
             double dist = t0 < t1 ? t0 : t1;
             dist = dist < t2 ? dist : t2;
@@ -120,6 +114,18 @@ int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float
         }
     }
     return off;
+}
+
+/* the two modes compiled separately (the mode test leaves the inner loop) */
+int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float *ends,
+                     const int64_t *key_ends, int64_t n, double res, const int64_t *lo,
+                     const int64_t *strides, int64_t tree_max_val, int64_t *out, int64_t cap,
+                     uint8_t *mark, int64_t mark_size)
+{
+    if (mark)
+        return ray_cells(origin, key_origin, ends, key_ends, n, res, lo, strides, tree_max_val, out, cap, mark,
+                         mark_size);
+    return ray_cells(origin, key_origin, ends, key_ends, n, res, lo, strides, tree_max_val, out, cap, NULL, 0);
 }
 
 /* Distribution-weighted rays (see mono_map/mapping/distribution.py). Ray i visits the cells of
@@ -249,9 +255,10 @@ int64_t mm_point_keys(const double *pts, int64_t n, double rf, int64_t tree_max_
         for (int a = 0; a < 3; ++a) {
             float f = (float) pts[i + a];
             pts32[i + a] = f;
-            double c = floor(rf * (double) f);
+            double c = rf * (double) f;    /* floor(c) in [-tmv, tmv) <=> c in [-tmv, tmv) */
             if (!(c >= (double) -tree_max_val && c < (double) tree_max_val)) { ++bad; keys[i + a] = 0; continue; }
-            int64_t k = (int64_t) c + tree_max_val;
+            int64_t t = (int64_t) c;         /* floor without the libm call: truncate, then one down if above */
+            int64_t k = t - ((double) t > c) + tree_max_val;
             keys[i + a] = k;
             if (k < lo[a]) lo[a] = k;
             if (k > hi[a]) hi[a] = k;
