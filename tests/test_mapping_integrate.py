@@ -144,7 +144,7 @@ def test_kernel_node_stream_equals_numpy_stream():
     """The .ot stream written from the mirror's blocks (compiled) is the numpy stream of the same cells, byte
     for byte, with collapsible 2x2x2 and 8x8x8 groups of equal values, partial blocks and scattered cells."""
     from mono_map.mapping.integrate import LogOddsMirror
-    from mono_map.mapping.octree_io import ot_header, ot_stream
+    from mono_map.mapping.octree_io import dfs_codes, ot_header, ot_stream
 
     kernel = raycast_c.load_kernel()
     rng = np.random.default_rng(4)
@@ -162,7 +162,7 @@ def test_kernel_node_stream_equals_numpy_stream():
     vals = vals[first]
     idx = m.index(keys, create=True)
     m.pool[idx] = vals
-    nodes, n = raycast_c.ot_nodes_c(kernel, m.pool, m.block_keys[:m.n_blocks])
+    nodes, n = raycast_c.ot_nodes_c(kernel, m.pool, dfs_codes(m.block_keys[:m.n_blocks] >> 3))
     ref, n_ref = ot_stream(keys, vals, 0.2)
     assert n == n_ref and ot_header(n, 0.2) + nodes == ref
     tree = octomap.OcTree.read(ot_header(n, 0.2) + nodes)

@@ -418,9 +418,9 @@ class MapIntegrator:
             return octree_from_cells(m.keys_of(known), m.pool[known], self.cfg)
         import octomap
 
-        from mono_map.mapping.octree_io import ot_header
+        from mono_map.mapping.octree_io import dfs_codes, ot_header
 
-        nodes, n = ot_nodes_c(kernel, m.pool, m.block_keys[:m.n_blocks], m.CELLS)   # straight from the blocks
+        nodes, n = ot_nodes_c(kernel, m.pool, dfs_codes(m.block_keys[:m.n_blocks] >> m.SHIFT))   # from the blocks
         return apply_sensor_model(octomap.OcTree.read(ot_header(n, self.cfg.resolution) + nodes), self.cfg)
 
     MAX_GROUPS = 2048   # distinct increments beyond which one updateNodes call per group costs more than a rebuild

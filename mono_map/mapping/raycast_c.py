@@ -792,14 +792,13 @@ def zeroed_bitmap(size: int) -> np.ndarray:
     return _MARK[0][:size]
 
 
-def ot_nodes_c(fn, pool: np.ndarray, block_keys: np.ndarray, cells_per_block: int = 512) -> tuple[bytes, int]:
+def ot_nodes_c(fn, pool: np.ndarray, block_codes: np.ndarray) -> tuple[bytes, int]:
     """``mm_ot_nodes``: (the node bytes of OctoMap's .ot stream, node count) of the known (non-NaN) cells of
-    a log-odds mirror: float32 ``pool`` of blocks of 8×8×8 cells, ``block_keys`` (B, 3) the key of each
-    block's first cell (see integrate.LogOddsMirror). The same bytes as octree_io.ot_stream of those cells."""
-    from mono_map.mapping.octree_io import dfs_codes
-
-    assert cells_per_block == 512 and pool.dtype == np.float32 and pool.flags.c_contiguous
-    codes = dfs_codes(np.asarray(block_keys, dtype=np.int64) >> 3)
+    a log-odds mirror: float32 ``pool`` of blocks of 8×8×8 cells (see integrate.LogOddsMirror),
+    ``block_codes`` (B,) each block's depth-13 code (``octree_io.dfs_codes(block_key >> 3)``).
+    The same bytes as ``octree_io.ot_stream`` of those cells."""
+    assert pool.dtype == np.float32 and pool.flags.c_contiguous
+    codes = np.asarray(block_codes, dtype=np.int64)
     slot = np.argsort(codes, kind="stable").astype(np.int64)
     codes = np.ascontiguousarray(codes[slot])
     cap = (512 + 64 + 8 + 1 + 13) * len(slot) + 1     # a full block's subtree and its path to the root
