@@ -421,6 +421,8 @@ class MapIntegrator:
         from mono_map.mapping.octree_io import dfs_codes, ot_header
 
         nodes, n = ot_nodes_c(kernel, m.pool, dfs_codes(m.block_keys[:m.n_blocks] >> m.SHIFT))   # from the blocks
+        if n == 0:
+            return make_octree(self.cfg)
         return apply_sensor_model(octomap.OcTree.read(ot_header(n, self.cfg.resolution) + nodes), self.cfg)
 
     MAX_GROUPS = 2048   # distinct increments beyond which one updateNodes call per group costs more than a rebuild
