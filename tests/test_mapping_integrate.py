@@ -107,6 +107,69 @@ def test_batched_map_equals_insertPointCloud(kernel, sync, monkeypatch):
     assert (getattr(fast, "rebuilds", 0) > 0) == (sync == "rebuild")
 
 
+def dense_scan(seed: int):
+    """A scan with many end points per cell (snapped near a coarse grid), some in the origin's own cell,
+    some far beyond a 6 m range and a LiDAR-like fan."""
+    rng = np.random.default_rng(seed)
+    origin = np.array([0.05, -0.13, 1.51])
+    grid = rng.integers(-40, 40, size=(600, 3)) * 0.2 + 0.1
+    pts = np.repeat(grid, 6, axis=0) + rng.uniform(-0.09, 0.09, (3600, 3))    # ~6 points per cell
+    az = rng.uniform(-np.pi, np.pi, 3000)
+    el = rng.uniform(-0.4, 0.05, 3000)
+    r = rng.uniform(3.0, 30.0, 3000)
+    fan = origin + np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1) * r[:, None]
+    near = origin + rng.uniform(-0.04, 0.04, (20, 3))                         # the origin's cell: empty rays
+    return np.concatenate([pts, fan, near]), origin
+
+
+@pytest.mark.parametrize("max_range", [-1.0, 6.0])
+@pytest.mark.parametrize("discretize", [True, False])
+def test_dense_scans_match_insertPointCloud(kernel, max_range, discretize):
+    """End points deduplicated by cell (OctoMap's discretize) or not, rays cut at max_range, empty rays
+    from the origin's cell: the same free / occupied sets as insertPointCloud; the reused bitmap is left zeroed."""
+    res = 0.2
+    for seed in (0, 1):
+        points, origin = dense_scan(seed)
+        ks = raycast.compute_update(points, origin, res, max_range=max_range, discretize_points=discretize)
+        tree = octomap.OcTree(res)
+        tree.insertPointCloud(points, origin, maxrange=max_range, discretize=discretize)
+        cells = octree_sets(tree, res)
+        assert key_codes(ks.free) == {k for k, v in cells.items() if v < 0}
+        assert key_codes(ks.occupied) == {k for k, v in cells.items() if v > 0}
+        assert len(ks.free) == len(key_codes(ks.free)) and len(ks.occupied) == len(key_codes(ks.occupied))
+        if kernel != "numpy":
+            assert not raycast_c.zeroed_bitmap(int(np.prod(ks.hi - ks.lo + 1))).any()
+
+
+def test_kernel_node_stream_equals_numpy_stream():
+    """The .ot stream written from the mirror's blocks (compiled) is the numpy stream of the same cells, byte
+    for byte, with collapsible 2x2x2 and 8x8x8 groups of equal values, partial blocks and scattered cells."""
+    from mono_map.mapping.integrate import LogOddsMirror
+    from mono_map.mapping.octree import child_order_codes, ot_header, ot_stream
+
+    kernel = raycast_c.load_kernel()
+    rng = np.random.default_rng(4)
+    m = LogOddsMirror()
+    full = np.stack(np.meshgrid(*[np.arange(8)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    groups = [32768 + 8 * np.array([3, -2, 1]) + full,                  # one whole block, all equal: collapses
+              32768 + 8 * np.array([4, -2, 1]) + full,                  # its neighbour, two values
+              32760 + full[(full < 2).all(axis=1)],                     # a 2x2x2 group
+              rng.integers(32000, 33500, size=(3000, 3))]               # scattered
+    values = [np.full(512, 0.85, np.float32), np.where(full[:, 0] < 4, 0.4, -0.4).astype(np.float32),
+              np.full(8, -1.2, np.float32), rng.choice([-0.4, 0.85, 1.2], 3000).astype(np.float32)]
+    keys = np.concatenate(groups)
+    vals = np.concatenate(values)
+    keys, first = np.unique(keys, axis=0, return_index=True)
+    vals = vals[first]
+    idx = m.index(keys, create=True)
+    m.pool[idx] = vals
+    nodes, n = raycast_c.ot_nodes_c(kernel, m.pool, child_order_codes(m.block_keys[:m.n_blocks] >> 3))
+    ref, n_ref = ot_stream(keys, vals, 0.2)
+    assert n == n_ref and ot_header(n, 0.2) + nodes == ref
+    tree = octomap.OcTree.read(ot_header(n, 0.2) + nodes)
+    assert tree.getNumLeafNodes() < len(keys)                          # some groups did collapse
+
+
 def test_changed_cells_reported():
     fast = MapIntegrator(OctoMapConfig(resolution=0.2))
     origin = np.zeros(3)

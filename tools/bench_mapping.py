@@ -12,9 +12,13 @@ the synced octree) and the whole build (``build_map``, prediction included); min
 and the frames/s ratio distribution / keep.
 
 All scans are loaded (and, for mono, predicted/selected/back-projected) first; only integration is
-timed. Every method runs with discretize=True (graph2tree: -discretize) and OctoMap's defaults.
-Prints times, speed-up ratios, and how far the maps agree (cell states at the finest resolution
-over the union of known cells, exact log-odds, memoryUsage, leaf count).
+timed (for the batched path: from the points to the synced octree). Every method runs with
+discretize=True (graph2tree: -discretize) and OctoMap's defaults, --repeat times back to back
+(insertPointCloud, batched, graph2tree in each round). Prints s/scan min / median / max per
+method, the per-round speed-up ratios (min / median / max), one summary line
+``speed-up: <x>x vs insertPointCloud, <y>x vs graph2tree (median of N runs)``, and how far the
+maps of the last round agree (cell states at the finest resolution over the union of known cells,
+exact log-odds, memoryUsage, leaf count).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import argparse
 import os
 import re
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -65,7 +70,7 @@ def load_scans(args) -> list[tuple[np.ndarray, np.ndarray]]:
     if args.source == "mono":
         from mono_map.mapping.build import load_predictor
 
-        predictor = load_predictor(args.model)
+        predictor = load_predictor(None if args.model == "shipped" else args.model)
     for i in frames:
         if args.source == "mono":
             image = seq.image(i)
@@ -76,6 +81,22 @@ def load_scans(args) -> list[tuple[np.ndarray, np.ndarray]]:
         else:
             scans.append(lidar_measurement(seq, i, args.source))
     return scans
+
+
+def run_graph2tree(scans, res: float):
+    """OctoMap's C++ graph2tree -discretize on the scans: (tree, insertion seconds it reports, wall seconds)."""
+    import octomap
+
+    with tempfile.TemporaryDirectory() as tmp:
+        graph = Path(tmp) / "scans.graph"
+        write_scan_graph(graph, scans)
+        t0 = time.perf_counter()
+        out = subprocess.run(["graph2tree", "-i", str(graph), "-o", str(Path(tmp) / "g.bt"), "-res", str(res),
+                              "-g", "-discretize"], capture_output=True, text=True, check=True).stdout
+        wall = time.perf_counter() - t0
+        m = re.search(r"time to insert scans: ([0-9.eE+-]+) sec", out)
+        return (octomap.OcTree.read(str(Path(tmp) / "g.bt.ot").encode()), float(m.group(1)) if m else float("nan"),
+                wall)
 
 
 def cell_table(tree):
@@ -101,8 +122,6 @@ def agreement(a, b) -> dict:
 
 def bench_integrations(args) -> int:
     """--integrate: keep vs distribution, back to back, on the same frames (see the module docstring)."""
-    import statistics
-
     from mono_map.mapping.build import bin_edges, build_map, distribution_frame, load_predictor, run_predictor
 
     selection = parse_frames(args.frames, default=first_frames(500))
@@ -161,16 +180,19 @@ def main(argv=None) -> int:
     p.add_argument("--frames", default="0:20")
     p.add_argument("--keep", type=float, default=0.8)
     p.add_argument("--stride", type=int, default=1)
-    p.add_argument("--model", default="oracle", help="mono only: checkpoint or 'oracle' (noisy ground truth)")
+    p.add_argument("--model", default="oracle",
+                   help="mono only: checkpoint, 'shipped' (the shipped model) or 'oracle' (noisy ground truth)")
     p.add_argument("--res", type=float, default=0.2)
     p.add_argument("--numpy", action="store_true", help="also time the numpy DDA (no compiled kernel)")
     p.add_argument("--integrate", action="store_true", help="keep vs distribution integration (see above)")
-    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--repeat", type=int, default=3, help="back-to-back runs of every method (>= 1)")
     d = DistributionConfig()
     p.add_argument("--eps", type=float, default=d.eps)
     p.add_argument("--min-update", type=float, default=d.min_update)
     p.add_argument("--ray-step", type=int, default=d.ray_step)
     args = p.parse_args(argv)
+    if args.repeat < 1:
+        p.error(f"--repeat: must be at least 1, got {args.repeat}")
     if args.integrate:
         return bench_integrations(args)
     cfg = OctoMapConfig(resolution=args.res)
@@ -179,41 +201,41 @@ def main(argv=None) -> int:
     n_pts = sum(len(s[0]) for s in scans)
     print(f"{len(scans)} scans, {n_pts:,} points ({n_pts / len(scans):,.0f} per scan), {args.res} m cells\n")
 
-    results = {}
-    ref, results["insertPointCloud"] = integrate_timed(MapIntegrator(cfg, method="insertPointCloud"), scans)
-    fast, results["batched"] = integrate_timed(MapIntegrator(cfg), scans)
+    results: dict[str, list[float]] = {}
+    ref = fast = g2t = None
+    for _ in range(args.repeat):       # baseline and candidates back to back, every repeat
+        ref, t_ref = integrate_timed(MapIntegrator(cfg, method="insertPointCloud"), scans)
+        fast, t_fast = integrate_timed(MapIntegrator(cfg), scans)
+        results.setdefault("insertPointCloud", []).append(t_ref)
+        results.setdefault("batched", []).append(t_fast)
+        results.setdefault("batched: octree updates", []).append(fast.sync_seconds)
+        if args.numpy:
+            os.environ["MONO_MAP_NO_C"] = "1"
+            _, t_np = integrate_timed(MapIntegrator(cfg), scans)
+            del os.environ["MONO_MAP_NO_C"]
+            results.setdefault("batched (numpy DDA)", []).append(t_np)
+        if shutil.which("graph2tree"):
+            g2t, t_ins, t_wall = run_graph2tree(scans, args.res)
+            results.setdefault("graph2tree (insertion)", []).append(t_ins)
+            results.setdefault("graph2tree (whole run)", []).append(t_wall)
+    if g2t is None:
+        print("graph2tree not installed (apt-get install octomap-tools): skipped")
     fast_tree = fast.tree
 
-    if args.numpy:
-        os.environ["MONO_MAP_NO_C"] = "1"
-        _, results["batched (numpy DDA)"] = integrate_timed(MapIntegrator(cfg), scans)
-        del os.environ["MONO_MAP_NO_C"]
-
-    g2t = None
-    if shutil.which("graph2tree"):
-        with tempfile.TemporaryDirectory() as tmp:
-            graph = Path(tmp) / "scans.graph"
-            write_scan_graph(graph, scans)
-            t0 = time.perf_counter()
-            out = subprocess.run(["graph2tree", "-i", str(graph), "-o", str(Path(tmp) / "g.bt"), "-res", str(args.res),
-                                  "-g", "-discretize"], capture_output=True, text=True, check=True).stdout
-            wall = time.perf_counter() - t0
-            m = re.search(r"time to insert scans: ([0-9.eE+-]+) sec", out)
-            results["graph2tree (insertion)"] = float(m.group(1)) if m else float("nan")
-            results["graph2tree (whole run)"] = wall
-            import octomap
-
-            g2t = octomap.OcTree.read(str(Path(tmp) / "g.bt.ot").encode())
-    else:
-        print("graph2tree not installed (apt-get install octomap-tools): skipped")
-
-    base = results["batched"]
-    print(f"{'method':28s} {'seconds':>9s} {'s/scan':>8s} {'time / batched':>15s}")
-    for name, sec in results.items():
-        print(f"{name:28s} {sec:9.2f} {sec / len(scans):8.3f} {sec / base:14.2f}x")
-    print(f"\nspeed-up of the batched path: {results['insertPointCloud'] / base:.1f}x vs insertPointCloud"
-          + (f", {results['graph2tree (insertion)'] / base:.1f}x vs graph2tree's insertion time" if g2t else ""))
-    print(f"(batched: ray casting + mirror {base - fast.sync_seconds:.2f} s, octree updates {fast.sync_seconds:.2f} s)")
+    med = {name: statistics.median(v) for name, v in results.items()}
+    print(f"{'method':28s} {'s/scan min':>10s} {'median':>8s} {'max':>8s} {'median / batched':>17s}")
+    for name, v in results.items():
+        n = len(scans)
+        print(f"{name:28s} {min(v) / n:10.4f} {med[name] / n:8.4f} {max(v) / n:8.4f} {med[name] / med['batched']:16.2f}x")
+    ratios = {"insertPointCloud": [a / b for a, b in zip(results["insertPointCloud"], results["batched"])]}
+    if g2t is not None:
+        ratios["graph2tree"] = [a / b for a, b in zip(results["graph2tree (insertion)"], results["batched"])]
+    for name, r in ratios.items():
+        print(f"speed-up vs {name:16s}: min {min(r):.1f}x, median {statistics.median(r):.1f}x, max {max(r):.1f}x "
+              f"({len(r)} back-to-back runs)")
+    print(f"speed-up: {statistics.median(ratios['insertPointCloud']):.1f}x vs insertPointCloud, "
+          + (f"{statistics.median(ratios['graph2tree']):.1f}x vs graph2tree" if g2t is not None else "graph2tree n/a")
+          + f" (median of {args.repeat} runs)")
 
     for name, other in (("insertPointCloud", ref.tree), ("graph2tree", g2t)):
         if other is None:

@@ -18,7 +18,8 @@ import numpy as np
 
 from mono_map.config import OctoMapConfig
 from mono_map.errors import MonoMapError
-from mono_map.mapping.octree import key_to_coord, make_octree, morton_order, octree_from_cells, sorted_unique
+from mono_map.mapping.octree import (apply_sensor_model, child_order_codes, key_to_coord, make_octree, morton_order,
+                                     octree_from_cells, ot_header, sorted_unique)
 from mono_map.mapping.raycast import KeySets, compute_update
 
 
@@ -96,25 +97,49 @@ class LogOddsMirror:
             missing = slots < 0
             if missing.any():
                 new_blocks = sorted_unique(flat[missing])
-                start = self.n_blocks
-                self.n_blocks += len(new_blocks)
-                tbl[new_blocks] = np.arange(start, self.n_blocks, dtype=np.int32)
-                bk = (np.stack(np.unravel_index(new_blocks, self.table.shape), axis=1) + self.table_lo) << self.SHIFT
-                need = self.n_blocks * self.CELLS
-                if need > len(self.pool):
-                    cap = max(need, int(len(self.pool) * 1.5))
-                    self.pool = _grow(self.pool, cap, np.nan)
-                    self.synced = _grow(self.synced, cap, np.nan)
-                    self.dirty = _grow(self.dirty, cap, False)
-                if self.n_blocks > len(self.block_keys):
-                    cap = max(self.n_blocks, int(len(self.block_keys) * 1.5))
-                    self.block_keys = _grow(self.block_keys, cap, 0)
-                self.block_keys[start:self.n_blocks] = bk
+                tbl[new_blocks] = np.arange(self.n_blocks, self.n_blocks + len(new_blocks), dtype=np.int32)
+                self._add_blocks(new_blocks)
                 slots = tbl[flat]
             return slots.astype(np.int64) * self.CELLS + local
         out = slots.astype(np.int64) * self.CELLS + local
         out[slots < 0] = -1
         return out
+
+    def _add_blocks(self, new_blocks: np.ndarray) -> None:
+        """Storage for blocks at flat table indices ``new_blocks``, whose table slots are already set to
+        n_blocks, n_blocks + 1, ... in that order."""
+        start = self.n_blocks
+        self.n_blocks += len(new_blocks)
+        bk = (np.stack(np.unravel_index(new_blocks, self.table.shape), axis=1) + self.table_lo) << self.SHIFT
+        need = self.n_blocks * self.CELLS
+        if need > len(self.pool):
+            cap = max(need, int(len(self.pool) * 1.5))
+            self.pool = _grow(self.pool, cap, np.nan)
+            self.synced = _grow(self.synced, cap, np.nan)
+            self.dirty = _grow(self.dirty, cap, False)
+        if self.n_blocks > len(self.block_keys):
+            cap = max(self.n_blocks, int(len(self.block_keys) * 1.5))
+            self.block_keys = _grow(self.block_keys, cap, 0)
+        self.block_keys[start:self.n_blocks] = bk
+
+    def update(self, kernel, keys: np.ndarray, update, cmin, cmax, thres,
+               bounds: tuple | None = None) -> tuple[int, np.ndarray]:
+        """The compiled ``updateNode`` on distinct cells ``keys`` ((N, 3) int64) by ``update`` (float32 scalar
+        or (N,)), creating blocks as needed; (#cells changed, rows of ``keys`` whose occupied state flipped).
+        bounds: optional (lo, hi) key bounds of ``keys``."""
+        from mono_map.mapping.raycast_c import mirror_alloc_c, mirror_apply_c
+
+        keys = np.ascontiguousarray(keys, dtype=np.int64)
+        if bounds is not None and bounds[0] is not None:
+            blo, bhi = np.maximum(bounds[0], 0) >> self.SHIFT, np.minimum(bounds[1], 65535) >> self.SHIFT
+        else:
+            blo, bhi = keys.min(axis=0) >> self.SHIFT, keys.max(axis=0) >> self.SHIFT
+        self._grow_table(blo, bhi)
+        new_blocks = mirror_alloc_c(kernel, keys, self.table, self.table_lo, self.n_blocks)
+        if len(new_blocks):
+            self._add_blocks(new_blocks)
+        return mirror_apply_c(kernel, keys, update, self.table, self.table_lo, self.pool, self.dirty, cmin, cmax,
+                              thres)
 
     def keys_of(self, idx: np.ndarray) -> np.ndarray:
         """Keys ((N, 3) int64) of pool indices."""
@@ -279,6 +304,15 @@ class MapIntegrator:
         """
         if len(keys) == 0:
             return 0, np.zeros((0, 3))
+        from mono_map.mapping.raycast_c import load_kernel
+
+        kernel = load_kernel()
+        if kernel is not None:                  # the same arithmetic, compiled
+            if isinstance(update, (bool, np.bool_)):
+                update = self.hit if update else self.miss
+            n, flipped = self.mirror.update(kernel, keys, update, self.cmin, self.cmax, self.occ_thres, bounds)
+            self._pending = True
+            return n, key_to_coord(keys[flipped], self.cfg.resolution)
         if isinstance(update, (bool, np.bool_)):
             upd = np.full(len(keys), self.hit if update else self.miss, dtype=np.float32)
         else:
@@ -324,8 +358,7 @@ class MapIntegrator:
         idx, new, old = idx[moved], new[moved], old[moved]
         self.n_known = getattr(self, "n_known", 0) + int(np.isnan(old).sum())
         if len(idx) > self.REBUILD_RATIO * self.n_known or self._many_increments(new, old):
-            known = np.flatnonzero(~np.isnan(m.pool[:used]))
-            self._tree = octree_from_cells(m.keys_of(known), m.pool[known], self.cfg)
+            self._tree = self._rebuilt_tree()
             m.synced[:used] = m.pool[:used]
             self.rebuilds = getattr(self, "rebuilds", 0) + 1
         elif len(idx):
@@ -342,6 +375,22 @@ class MapIntegrator:
         dt = time.perf_counter() - t0
         self.sync_seconds += dt
         return dt
+
+    def _rebuilt_tree(self):
+        """A new octree holding exactly the mirror's known cells (one .ot stream read by OctoMap)."""
+        from mono_map.mapping.raycast_c import load_kernel, ot_nodes_c
+
+        m = self.mirror
+        kernel = load_kernel()
+        if kernel is None or m.n_blocks == 0:
+            known = np.flatnonzero(~np.isnan(m.pool[:m.n_blocks * m.CELLS]))
+            return octree_from_cells(m.keys_of(known), m.pool[known], self.cfg)
+        import octomap
+
+        nodes, n = ot_nodes_c(kernel, m.pool, child_order_codes(m.block_keys[:m.n_blocks] >> m.SHIFT))   # from the blocks
+        if n == 0:
+            return make_octree(self.cfg)
+        return apply_sensor_model(octomap.OcTree.read(ot_header(n, self.cfg.resolution) + nodes), self.cfg)
 
     MAX_GROUPS = 2048   # distinct increments beyond which one updateNodes call per group costs more than a rebuild
 

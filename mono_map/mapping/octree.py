@@ -191,9 +191,13 @@ def ot_stream(keys: np.ndarray, values: np.ndarray, resolution: float) -> tuple[
     nodes = np.empty(len(order), dtype=_NODE)
     nodes["v"] = np.concatenate(rec_val)[order]
     nodes["c"] = np.concatenate(rec_mask)[order]
-    header = (f"# Octomap OcTree file\n# (feel free to add / change comments, but leave the first line as it is!)\n"
-              f"#\nid OcTree\nsize {len(nodes)}\nres {float(resolution)!r}\ndata\n").encode()
-    return header + nodes.tobytes(), len(nodes)
+    return ot_header(len(nodes), resolution) + nodes.tobytes(), len(nodes)
+
+
+def ot_header(n_nodes: int, resolution: float) -> bytes:
+    """The text header of a .ot stream of ``n_nodes`` nodes at ``resolution`` metres."""
+    return (f"# Octomap OcTree file\n# (feel free to add / change comments, but leave the first line as it is!)\n"
+            f"#\nid OcTree\nsize {n_nodes}\nres {float(resolution)!r}\ndata\n").encode()
 
 
 def octree_from_cells(keys: np.ndarray, values: np.ndarray, cfg: OctoMapConfig):

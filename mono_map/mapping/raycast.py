@@ -76,7 +76,12 @@ class KeyBox:
         return (keys - self.lo) @ self.strides
 
     def keys(self, lin: np.ndarray) -> np.ndarray:
+        from mono_map.mapping.raycast_c import box_keys_c, load_kernel
+
         lin = np.asarray(lin, dtype=np.int64)
+        kernel = load_kernel()
+        if kernel is not None:
+            return box_keys_c(kernel, lin, self.lo, self.strides)
         k0, rem = _divmod(lin, int(self.strides[0]))
         k1, k2 = _divmod(rem, int(self.strides[1]))
         out = np.empty((len(lin), 3), dtype=np.int64)
@@ -231,6 +236,13 @@ def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
     empty = np.zeros((0, 3), dtype=np.int64)
     if len(pts) == 0:
         return KeySets(empty, empty.copy())
+    from mono_map.mapping.raycast_c import load_kernel
+
+    kernel = load_kernel()
+    if kernel is not None:
+        ks = _compute_update_c(kernel, pts, origin32, key_origin, res, max_range, discretize_points)
+        if ks is not None:
+            return ks
     if discretize_points:
         _, ends = discretize(pts, res)
     else:
@@ -274,4 +286,62 @@ def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
         occ_u = sorted_unique(occ_lin)
         free_u = np.setdiff1d(sorted_unique(free_lin), occ_u, assume_unique=True)
     return KeySets(free=box.keys(free_u), occupied=box.keys(occ_u), n_rays=n_rays, n_endpoints=len(occ_u),
+                   lo=box.lo, hi=box.lo + box.dims - 1)
+
+
+def _compute_update_c(kernel, pts: np.ndarray, origin32: np.ndarray, key_origin: np.ndarray, res: float,
+                      max_range: float, discretize_points: bool) -> KeySets | None:
+    """:func:`compute_update` with the compiled kernel throughout (None: box too large for a bitmap).
+
+    One bitmap over the frame's box of keys (reused across frames): the end points' keys are
+    deduplicated through it, marking the occupied cells 2 (``computeDiscreteUpdate``); the rays then
+    mark and emit only cells still 0 — the free cells minus the occupied ones (occupied wins), each once.
+    """
+    from mono_map.mapping.raycast_c import point_keys_c, ray_cells_c, unique_cells_c, zeroed_bitmap
+
+    pts32, keys, lo, hi, n_out = point_keys_c(kernel, pts, res, TREE_MAX_VAL)
+    if n_out:
+        raise MonoMapError(f"points: {n_out} end points lie outside OctoMap's addressable "
+                           f"range (±{TREE_MAX_VAL * res:.0f} m at {res} m)")
+    box = KeyBox(np.minimum(lo, key_origin), np.maximum(hi, key_origin))
+    if box.size > _BITMAP_MAX_CELLS:
+        return None
+    mark = zeroed_bitmap(box.size)
+    try:
+        if discretize_points:            # one ray per distinct end cell, to the cell's centre
+            rows, ends = unique_cells_c(kernel, keys, box.lo, box.strides, mark, res, TREE_MAX_VAL)
+            end_keys = keys[rows]
+        else:
+            ends, end_keys = pts32, keys
+        n_rays = len(ends)
+        inside = None
+        if max_range is not None and max_range >= 0:
+            ray_ends, inside = cut_at_range(ends, origin32, max_range)
+            if inside.all():
+                inside = None
+            else:                        # cut rays: free cells only, cast to the cut point
+                ray_keys = end_keys.copy()
+                ray_keys[~inside] = coord_to_key(ray_ends[~inside], res)
+        if inside is None:
+            ray_ends, ray_keys, occ_keys = ends, end_keys, end_keys
+        else:
+            occ_keys = end_keys[inside]
+        if discretize_points:
+            occ_lin = box.linear(end_keys)
+            if inside is not None:
+                mark[occ_lin[~inside]] = 0   # not occupied after all
+                occ_lin = occ_lin[inside]
+        else:                            # raw ends: the occupied cells are their distinct keys
+            rows, _ = unique_cells_c(kernel, occ_keys, box.lo, box.strides, mark, res, TREE_MAX_VAL, centres=False)
+            occ_keys = occ_keys[rows]
+            occ_lin = box.linear(occ_keys)
+        free_lin = ray_cells_c(kernel, origin32, key_origin, ray_ends, ray_keys, res, box.lo, box.strides,
+                               TREE_MAX_VAL, mark)
+    except BaseException:
+        mark[:] = 0                      # marks of unknown extent: zero all before the next frame
+        raise
+    mark[free_lin] = 0                   # leave the reused bitmap zeroed
+    mark[occ_lin] = 0
+    free = box.keys(free_lin)
+    return KeySets(free=free, occupied=occ_keys, n_rays=n_rays, n_endpoints=len(occ_keys),
                    lo=box.lo, hi=box.lo + box.dims - 1)

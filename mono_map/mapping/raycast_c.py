@@ -25,6 +25,7 @@ C_SOURCE = r"""
 #include <math.h>
 #include <float.h>
 #include <stdint.h>
+#include <string.h>
 
 /* computeRayKeys' set-up for the ray origin -> e: steps, tMax, tDelta (OctoMap's types); returns the
    float length |e - origin|. */
@@ -58,28 +59,31 @@ static inline float dda_setup(const float *origin, const float *e, const int64_t
     return length;
 }
 
-/* One DDA step (the axis whose border is nearest); returns the linear-index change. */
-static inline int64_t dda_step(int64_t *cur, const int *step, double *tMax, const double *tDelta, const int64_t *dl)
+/* One DDA step (the axis whose border is nearest); returns the linear-index change (the key changes by
+   step[dim] on that axis: tracking the linear index alone suffices, cur == key_end <=> lin == lin_end). */
+static inline int64_t dda_step(double *tMax, const double *tDelta, const int64_t *dl)
 {
     int dim;
     if (tMax[0] < tMax[1]) dim = (tMax[0] < tMax[2]) ? 0 : 2;
     else dim = (tMax[1] < tMax[2]) ? 1 : 2;
-    cur[dim] += step[dim];
     tMax[dim] += tDelta[dim];
     return dl[dim];
 }
 
 /* computeRayKeys(origin, end) for n ends. With mark == NULL: writes the linear indices to out
    (the origin cell first for every ray that leaves it) and returns their number, or -1 if cap is
-   too small. With mark (a zeroed bitmap of mark_size bytes over the box): writes each index only the
-   first time (setting mark[index] = 1), so out holds the distinct cells; -2 if an index falls outside. */
-#define EMIT(x) do { if (mark) { if ((x) < 0 || (x) >= mark_size) return -2; \
-        if (!mark[(x)]) { if (off >= cap) return -1; mark[(x)] = 1; out[off++] = (x); } } \
+   too small. With mark (a bitmap of mark_size bytes over the box, 0 = not seen): writes each index
+   whose mark is 0 (setting it to 1), so out holds the distinct unmarked cells; -2 if an index falls
+   outside. Cells pre-marked (e.g. 2 = occupied this frame) are skipped. The mark is set with an atomic
+   exchange, so several threads may share one bitmap: each cell is written by exactly one of them. */
+#define EMIT(x) do { if (mark) { if ((uint64_t) (x) >= (uint64_t) mark_size) return -2; \
+        if (!mark[(x)] && !__atomic_exchange_n(mark + (x), (uint8_t) 1, __ATOMIC_RELAXED)) { \
+            if (off >= cap) return -1; out[off++] = (x); } } \
         else { if (off >= cap) return -1; out[off++] = (x); } } while (0)
-int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float *ends,
-                     const int64_t *key_ends, int64_t n, double res, const int64_t *lo,
-                     const int64_t *strides, int64_t tree_max_val, int64_t *out, int64_t cap,
-                     uint8_t *mark, int64_t mark_size)
+static inline int64_t ray_cells(const float *origin, const int64_t *key_origin, const float *ends,
+                                const int64_t *key_ends, int64_t n, double res, const int64_t *lo,
+                                const int64_t *strides, int64_t tree_max_val, int64_t *out, int64_t cap,
+                                uint8_t *mark, int64_t mark_size)
 {
     int64_t off = 0;
     const int64_t lin_o = box_index(key_origin, lo, strides);
@@ -91,20 +95,37 @@ int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float
         EMIT(lin_o);
         int step[3];
         double tMax[3], tDelta[3];
-        int64_t cur[3] = {key_origin[0], key_origin[1], key_origin[2]};
         const float length = dda_setup(origin, e, key_origin, res, tree_max_val, step, tMax, tDelta);
+        /* dda_step on scalars (the compiler keeps them in registers) */
+        const int64_t lin_end = box_index(ke, lo, strides);
+        const int64_t d0 = step[0] * strides[0], d1 = step[1] * strides[1], d2 = step[2] * strides[2];
+        double t0 = tMax[0], t1 = tMax[1], t2 = tMax[2];
+        const double dt0 = tDelta[0], dt1 = tDelta[1], dt2 = tDelta[2], len = (double) length;
         int64_t lin = lin_o;
-        const int64_t dl[3] = {step[0] * strides[0], step[1] * strides[1], step[2] * strides[2]};
         for (;;) {
-            lin += dda_step(cur, step, tMax, tDelta, dl);
-            if (cur[0] == ke[0] && cur[1] == ke[1] && cur[2] == ke[2]) break;
-            double dist = tMax[0] < tMax[1] ? tMax[0] : tMax[1];
-            dist = dist < tMax[2] ? dist : tMax[2];
-            if (dist > (double) length) break;
+            if (t0 < t1) {
+                if (t0 < t2) { lin += d0; t0 += dt0; } else { lin += d2; t2 += dt2; }
+            } else if (t1 < t2) { lin += d1; t1 += dt1; } else { lin += d2; t2 += dt2; }
+            if (lin == lin_end) break;
+            double dist = t0 < t1 ? t0 : t1;
+            dist = dist < t2 ? dist : t2;
+            if (dist > len) break;
             EMIT(lin);
         }
     }
     return off;
+}
+
+/* the two modes compiled separately (the mode test leaves the inner loop) */
+int64_t mm_ray_cells(const float *origin, const int64_t *key_origin, const float *ends,
+                     const int64_t *key_ends, int64_t n, double res, const int64_t *lo,
+                     const int64_t *strides, int64_t tree_max_val, int64_t *out, int64_t cap,
+                     uint8_t *mark, int64_t mark_size)
+{
+    if (mark)
+        return ray_cells(origin, key_origin, ends, key_ends, n, res, lo, strides, tree_max_val, out, cap, mark,
+                         mark_size);
+    return ray_cells(origin, key_origin, ends, key_ends, n, res, lo, strides, tree_max_val, out, cap, NULL, 0);
 }
 
 /* Distribution-weighted rays (see mono_map/mapping/distribution.py). Ray i visits the cells of
@@ -187,16 +208,16 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
         }
         int step[3];
         double tMax[3], tDelta[3];
-        int64_t cur[3] = {key_origin[0], key_origin[1], key_origin[2]};
         const float length = dda_setup(origin, e, key_origin, res, tree_max_val, step, tMax, tDelta);
         int64_t lin = lin_o;
+        const int64_t lin_end = box_index(ke, lo, strides);
         const int64_t dl[3] = {step[0] * strides[0], step[1] * strides[1], step[2] * strides[2]};
         double c_in = cdf_at(0.0, p, ed, K, &k, &cum);
         double t_out = fmin(fmin(tMax[0], tMax[1]), tMax[2]);
         int64_t cell = lin_o;            /* the cell being left, entered with CDF c_in */
         for (;;) {
-            lin += dda_step(cur, step, tMax, tDelta, dl);
-            int at_end = cur[0] == ke[0] && cur[1] == ke[1] && cur[2] == ke[2];
+            lin += dda_step(tMax, tDelta, dl);
+            int at_end = lin == lin_end;
             double dist = tMax[0] < tMax[1] ? tMax[0] : tMax[1];
             dist = dist < tMax[2] ? dist : tMax[2];
             int stop = at_end || dist > (double) length;
@@ -208,8 +229,7 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
                     double t_end = dist > (double) length ? dist : (double) length;
                     if (!at_end) t_end = (double) length > t_out ? (double) length : t_out;
                     double c_end = cdf_at(t_end * sc, p, ed, K, &k, &cum);
-                    PUT(lin_o + (ke[0] - key_origin[0]) * strides[0] + (ke[1] - key_origin[1]) * strides[1]
-                        + (ke[2] - key_origin[2]) * strides[2],
+                    PUT(lin_end,
                         (float) ((c_end - c_out) * (double) hit + (mass - c_end + pb) * (double) miss));
                 }
                 break;
@@ -221,6 +241,211 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
         }
     }
     return off;
+}
+
+/* coordToKey for n float64 points (OctoMap: (int) floor(resolution_factor * (double)(float) p) + tree_max_val):
+   float32 copies to pts32, keys to keys (n x 3), their inclusive bounds to lo / hi; returns the number of
+   points whose key is outside [0, 2 * tree_max_val) (their keys are then meaningless). */
+int64_t mm_point_keys(const double *pts, int64_t n, double rf, int64_t tree_max_val, float *pts32,
+                      int64_t *keys, int64_t *lo, int64_t *hi)
+{
+    int64_t bad = 0;
+    for (int a = 0; a < 3; ++a) { lo[a] = INT64_MAX; hi[a] = INT64_MIN; }
+    for (int64_t i = 0; i < 3 * n; i += 3) {
+        for (int a = 0; a < 3; ++a) {
+            float f = (float) pts[i + a];
+            pts32[i + a] = f;
+            double c = rf * (double) f;    /* floor(c) in [-tmv, tmv) <=> c in [-tmv, tmv) */
+            if (!(c >= (double) -tree_max_val && c < (double) tree_max_val)) { ++bad; keys[i + a] = 0; continue; }
+            int64_t t = (int64_t) c;         /* floor without the libm call: truncate, then one down if above */
+            int64_t k = t - ((double) t > c) + tree_max_val;
+            keys[i + a] = k;
+            if (k < lo[a]) lo[a] = k;
+            if (k > hi[a]) hi[a] = k;
+        }
+    }
+    return bad;
+}
+
+/* computeDiscreteUpdate's deduplication through the box bitmap: for each of n keys, the first one in its cell
+   sets mark[cell] = 2 and writes its row to rows and, with centres, its cell centre (float) to centres;
+   returns the count (-2: a key outside the box). */
+int64_t mm_unique_cells(const int64_t *keys, int64_t n, const int64_t *lo, const int64_t *strides, uint8_t *mark,
+                        int64_t mark_size, double res, int64_t tree_max_val, int64_t *rows, float *centres)
+{
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; ++i) {
+        const int64_t *k = keys + 3 * i;
+        int64_t x = box_index(k, lo, strides);
+        if (x < 0 || x >= mark_size) return -2;
+        if (mark[x] == 2) continue;
+        mark[x] = 2;
+        rows[m] = i;
+        if (centres)
+            for (int a = 0; a < 3; ++a)
+                centres[3 * m + a] = (float) (((double) (k[a] - tree_max_val) + 0.5) * res);
+        ++m;
+    }
+    return m;
+}
+
+/* Exact floor division of 0 <= a < 2^50 by d > 0 through a double reciprocal (off by at most one, corrected):
+   several times faster than the integer division. */
+static inline int64_t div_fast(int64_t a, int64_t d, double inv)
+{
+    int64_t q = (int64_t) ((double) a * inv), r = a - q * d;
+    if (r < 0) --q;
+    else if (r >= d) ++q;
+    return q;
+}
+
+/* Keys (n x 3) of linear box indices (KeyBox.keys). */
+void mm_box_keys(const int64_t *lin, int64_t n, const int64_t *lo, const int64_t *strides, int64_t *keys)
+{
+    const int64_t s0 = strides[0], s1 = strides[1];
+    const double i0 = 1.0 / (double) s0, i1 = 1.0 / (double) s1;
+    for (int64_t i = 0; i < n; ++i) {
+        int64_t a = div_fast(lin[i], s0, i0), r = lin[i] - a * s0;
+        int64_t b = div_fast(r, s1, i1);
+        keys[3 * i] = a + lo[0];
+        keys[3 * i + 1] = b + lo[1];
+        keys[3 * i + 2] = r - b * s1 + lo[2];
+    }
+}
+
+/* The log-odds mirror (mono_map/mapping/integrate.py, LogOddsMirror): blocks of 8x8x8 cells, slot table[flat]
+   (int32, -1 = none) over a dense box of blocks (low corner tlo, shape tsh); cell (x, y, z) of a block at
+   pool[slot * 512 + (x & 7) * 64 + (y & 7) * 8 + (z & 7)]. */
+static inline int64_t block_flat(const int64_t *k, const int64_t *tlo, const int64_t *tsh)
+{
+    int64_t b0 = (k[0] >> 3) - tlo[0], b1 = (k[1] >> 3) - tlo[1], b2 = (k[2] >> 3) - tlo[2];
+    if (b0 < 0 || b0 >= tsh[0] || b1 < 0 || b1 >= tsh[1] || b2 < 0 || b2 >= tsh[2]) return -1;
+    return (b0 * tsh[1] + b1) * tsh[2] + b2;
+}
+
+/* Give every block of the n keys a slot: missing blocks get slots n_blocks, n_blocks + 1, ... in order of first
+   appearance, their flat table indices written to new_flat; returns how many (-2: a key outside the table). */
+int64_t mm_mirror_alloc(const int64_t *keys, int64_t n, int32_t *table, const int64_t *tlo, const int64_t *tsh,
+                        int64_t n_blocks, int64_t *new_flat)
+{
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; ++i) {
+        int64_t f = block_flat(keys + 3 * i, tlo, tsh);
+        if (f < 0) return -2;
+        if (table[f] < 0) { table[f] = (int32_t) (n_blocks + m); new_flat[m++] = f; }
+    }
+    return m;
+}
+
+/* OctoMap's updateNode(key, log-odds update) for n distinct cells on the mirror (every block allocated): a cell
+   already clamped in the update's direction is left alone (updateNode's early abort), otherwise
+   new = clamp((known ? old : 0) + u) (float arithmetic), dirty[cell] = 1. upd: per-key updates, or NULL for
+   u_all. Rows whose occupied state (>= thres) flipped go to flip_rows (count in *n_flip). Returns the number of
+   cells changed, -2 if a block is missing. */
+int64_t mm_mirror_apply(const int64_t *keys, int64_t n, const float *upd, float u_all, const int32_t *table,
+                        const int64_t *tlo, const int64_t *tsh, float *pool, uint8_t *dirty, float cmin,
+                        float cmax, float thres, int64_t *flip_rows, int64_t *n_flip)
+{
+    int64_t changed = 0, nf = 0;
+    for (int64_t i = 0; i < n; ++i) {
+        const int64_t *k = keys + 3 * i;
+        int64_t f = block_flat(k, tlo, tsh);
+        if (f < 0 || table[f] < 0) return -2;
+        int64_t x = (int64_t) table[f] * 512 + ((k[0] & 7) << 6) + ((k[1] & 7) << 3) + (k[2] & 7);
+        float u = upd ? upd[i] : u_all;
+        float old = pool[x];
+        int known = !isnan(old);
+        if (known && ((u >= 0.0f && old >= cmax) || (u <= 0.0f && old <= cmin))) continue;
+        float v = (known ? old : 0.0f) + u;
+        if (v < cmin) v = cmin;
+        if (v > cmax) v = cmax;
+        pool[x] = v;
+        dirty[x] = 1;
+        ++changed;
+        int was = known && old >= thres, is = v >= thres;
+        if (was != is) flip_rows[nf++] = i;
+    }
+    *n_flip = nf;
+    return changed;
+}
+
+/* OctoMap's .ot node stream (mono_map/mapping/octree.py: pre-order, per node float32 log-odds + child-mask
+   byte; eight equal leaf children collapse into their parent, an inner node holds its children's maximum) of
+   the mirror's known cells, straight from its 8x8x8 blocks: block b (pool + slot[b] * 512) at depth-13 code
+   codes[b] (z, y, x bits interleaved), blocks sorted by code. */
+struct ot_ctx { uint8_t *out; int64_t pos, cap; int err; const float *pool; const int64_t *slot; const int64_t *codes; };
+
+static inline void ot_put(struct ot_ctx *c, int64_t p, float v, uint8_t mask)
+{
+    memcpy(c->out + 5 * p, &v, 4);
+    c->out[5 * p + 4] = mask;
+}
+
+/* 0: no known cell below, 1: inner node, 2: leaf; *v: the node's value */
+static int ot_child_sum(struct ot_ctx *c, int64_t p, const int *kind, const float *vals, float *v)
+{
+    uint8_t mask = 0;
+    int nleaf = 0, any = 0;
+    float vmax = 0.0f, vmin = 0.0f;
+    for (int i = 0; i < 8; ++i) {
+        if (!kind[i]) continue;
+        mask |= (uint8_t) (1u << i);
+        nleaf += kind[i] == 2;
+        if (!any) { vmax = vmin = vals[i]; any = 1; }
+        else { if (vals[i] > vmax) vmax = vals[i]; if (vals[i] < vmin) vmin = vals[i]; }
+    }
+    if (!mask) { c->pos = p; return 0; }
+    *v = vmax;
+    if (mask == 0xFF && nleaf == 8 && vmin == vmax) { c->pos = p + 1; ot_put(c, p, vmax, 0); return 2; }
+    ot_put(c, p, vmax, mask);
+    return 1;
+}
+
+static int ot_cells(struct ot_ctx *c, const float *blk, int s, int x, int y, int z, float *v)
+{
+    if (s == 1) {
+        float f = blk[(x << 6) | (y << 3) | z];
+        if (isnan(f)) return 0;
+        if (c->pos >= c->cap) { c->err = 1; return 0; }
+        ot_put(c, c->pos++, f, 0);
+        *v = f;
+        return 2;
+    }
+    if (c->pos >= c->cap) { c->err = 1; return 0; }
+    int64_t p = c->pos++;
+    int h = s >> 1, kind[8];
+    float vals[8];
+    for (int i = 0; i < 8; ++i)
+        kind[i] = ot_cells(c, blk, h, x + (i & 1) * h, y + ((i >> 1) & 1) * h, z + ((i >> 2) & 1) * h, vals + i);
+    return ot_child_sum(c, p, kind, vals, v);
+}
+
+static int ot_blocks(struct ot_ctx *c, int depth, int64_t a, int64_t b, float *v)
+{
+    if (depth == 13) return ot_cells(c, c->pool + c->slot[a] * 512, 8, 0, 0, 0, v);
+    if (c->pos >= c->cap) { c->err = 1; return 0; }
+    int64_t p = c->pos++;
+    int shift = 3 * (12 - depth), kind[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+    float vals[8];
+    for (int64_t i = a; i < b;) {
+        int ci = (int) ((c->codes[i] >> shift) & 7);
+        int64_t j = i + 1;
+        while (j < b && (int) ((c->codes[j] >> shift) & 7) == ci) ++j;
+        kind[ci] = ot_blocks(c, depth + 1, i, j, vals + ci);
+        i = j;
+    }
+    return ot_child_sum(c, p, kind, vals, v);
+}
+
+/* Writes the stream's nodes (5 bytes each) to out (cap nodes); returns their number, -1 if cap is too small. */
+int64_t mm_ot_nodes(const float *pool, const int64_t *slot, const int64_t *codes, int64_t n_blocks, uint8_t *out,
+                    int64_t cap)
+{
+    struct ot_ctx c = {out, 0, cap, 0, pool, slot, codes};
+    float v;
+    if (n_blocks == 0) return 0;
+    ot_blocks(&c, 0, 0, n_blocks, &v);
+    return c.err ? -1 : c.pos;
 }
 """
 
@@ -271,6 +496,16 @@ def load_kernel():
         ffn.argtypes = [p, p, p, i64, i64, i64, f64, p]
         ffn.restype = None
         fn.far_depth = ffn
+        for name, args in (("point_keys", [p, i64, f64, i64, p, p, p, p]),
+                           ("unique_cells", [p, i64, p, p, p, i64, f64, i64, p, p]),
+                           ("box_keys", [p, i64, p, p, p]),
+                           ("mirror_alloc", [p, i64, p, p, p, i64, p]),
+                           ("mirror_apply", [p, i64, p, f32, p, p, p, p, p, f32, f32, f32, p, p]),
+                           ("ot_nodes", [p, p, p, i64, p, i64])):
+            cfn = getattr(lib, "mm_" + name)
+            cfn.argtypes = args
+            cfn.restype = None if name == "box_keys" else i64
+            setattr(fn, name, cfn)
         _LIB = fn
     except (OSError, subprocess.SubprocessError) as exc:
         print(f"mono-map: note: compiled ray kernel unavailable ({type(exc).__name__}); using numpy", file=sys.stderr)
@@ -326,9 +561,10 @@ def _distinct_cells(fn, o, ko, resolution, lo, st, tree_max_val, e, ke, mark) ->
 def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.ndarray, key_ends: np.ndarray,
                 resolution: float, lo: np.ndarray, strides: np.ndarray, tree_max_val: int,
                 mark: np.ndarray | None = None) -> np.ndarray | int:
-    """Run the kernel; returns linear box indices (int64, with repeats), or with ``mark`` (zeroed
-    uint8 bitmap over the box) the distinct indices, marking them 1 in ``mark`` (on two threads
-    for large frames: same set of cells, see ``_threads``)."""
+    """Run the kernel; returns linear box indices (int64, with repeats), or with ``mark`` (uint8 bitmap
+    over the box, 0 = unseen) the distinct indices of unmarked cells, marking them 1 in ``mark`` (cells
+    already marked, e.g. 2 = occupied, are skipped). Large frames run on two threads sharing the bitmap
+    (the kernel marks atomically, so each cell comes from one thread): same set of cells, see ``_threads``."""
     o = np.ascontiguousarray(origin32, dtype=np.float32)
     ko = np.ascontiguousarray(key_origin, dtype=np.int64)
     e = np.ascontiguousarray(ends32, dtype=np.float32)
@@ -340,17 +576,13 @@ def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.nda
         args = (o, ko, resolution, lo, st, tree_max_val)
         if len(e) < _PARALLEL_MIN_RAYS or _threads() < 2:
             return _distinct_cells(fn, *args, e, ke, mark)
-        # two halves of equal DDA work on two threads (ctypes releases the GIL), each deduplicating
-        # into its own bitmap; the union keeps the second half's cells the first did not have
+        # two halves of equal DDA work on two threads (ctypes releases the GIL), deduplicating into
+        # the one shared bitmap (consecutive rays, mostly neighbours, stay on one thread)
         steps = np.cumsum(np.abs(ke - ko[None, :]).sum(axis=1))
         cut = int(np.searchsorted(steps, steps[-1] / 2))
-        mark_b = np.zeros(mark.shape, dtype=np.uint8)  # calloc: pages are touched only where rays go
-        future = _pool().submit(_distinct_cells, fn, *args, e[cut:], ke[cut:], mark_b)
+        future = _pool().submit(_distinct_cells, fn, *args, e[cut:], ke[cut:], mark)
         first = _distinct_cells(fn, *args, e[:cut], ke[:cut], mark)
-        second = future.result()
-        second = second[mark[second] == 0]
-        mark[second] = 1
-        return np.concatenate([first, second])
+        return np.concatenate([first, future.result()])
     cap = _capacity(ke, ko)
     while True:
         out = np.empty(cap, dtype=np.int64)
@@ -466,3 +698,112 @@ def far_depth_c(fn, probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, 
     fn.far_depth(pr.ctypes.data, pb.ctypes.data, ed.ctypes.data, 0 if ed.ndim == 1 else ed.shape[1], pr.shape[1],
                  len(pr), float(eps), out.ctypes.data)
     return out
+
+
+def point_keys_c(fn, points: np.ndarray, resolution: float, tree_max_val: int):
+    """``mm_point_keys``: (float32 points (N, 3), int64 keys (N, 3), key lo (3,), key hi (3,), #points out of range)."""
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    n = len(pts)
+    pts32 = np.empty((n, 3), dtype=np.float32)
+    keys = np.empty((n, 3), dtype=np.int64)
+    lo, hi = np.empty(3, dtype=np.int64), np.empty(3, dtype=np.int64)
+    bad = fn.point_keys(pts.ctypes.data, n, 1.0 / float(resolution), int(tree_max_val), pts32.ctypes.data,
+                        keys.ctypes.data, lo.ctypes.data, hi.ctypes.data)
+    return pts32, keys, lo, hi, int(bad)
+
+
+def unique_cells_c(fn, keys: np.ndarray, lo: np.ndarray, strides: np.ndarray, mark: np.ndarray,
+                   resolution: float, tree_max_val: int, centres: bool = True):
+    """``mm_unique_cells``: (rows of the first key in each cell, float32 cell centres of those rows or None);
+    marks those cells 2 in ``mark``."""
+    k = np.ascontiguousarray(keys, dtype=np.int64)
+    rows = np.empty(len(k), dtype=np.int64)
+    cen = np.empty((len(k), 3), dtype=np.float32) if centres else None
+    m = fn.unique_cells(k.ctypes.data, len(k), np.ascontiguousarray(lo, dtype=np.int64).ctypes.data,
+                        np.ascontiguousarray(strides, dtype=np.int64).ctypes.data, mark.ctypes.data, len(mark),
+                        float(resolution), int(tree_max_val), rows.ctypes.data, None if cen is None else cen.ctypes.data)
+    if m < 0:
+        raise AssertionError("key outside its bounding box")   # the box is built from these keys
+    return rows[:m], None if cen is None else cen[:m]
+
+
+def box_keys_c(fn, lin: np.ndarray, lo: np.ndarray, strides: np.ndarray) -> np.ndarray:
+    """``mm_box_keys``: (N, 3) int64 keys of linear box indices."""
+    lin = np.ascontiguousarray(lin, dtype=np.int64)
+    out = np.empty((len(lin), 3), dtype=np.int64)
+    fn.box_keys(lin.ctypes.data, len(lin), np.ascontiguousarray(lo, dtype=np.int64).ctypes.data,
+                np.ascontiguousarray(strides, dtype=np.int64).ctypes.data, out.ctypes.data)
+    return out
+
+
+def mirror_alloc_c(fn, keys: np.ndarray, table: np.ndarray, table_lo: np.ndarray, n_blocks: int) -> np.ndarray:
+    """``mm_mirror_alloc``: flat table indices of the blocks of ``keys`` that had no slot (now slots
+    n_blocks, n_blocks + 1, ... in that order)."""
+    assert table.dtype == np.int32 and table.flags.c_contiguous
+    shape = np.array(table.shape, dtype=np.int64)
+    out = np.empty(min(len(keys), table.size), dtype=np.int64)
+    m = fn.mirror_alloc(keys.ctypes.data, len(keys), table.ctypes.data,
+                        np.ascontiguousarray(table_lo, dtype=np.int64).ctypes.data, shape.ctypes.data, int(n_blocks),
+                        out.ctypes.data)
+    if m < 0:
+        raise AssertionError("key outside the mirror's block table")   # the caller grows the table first
+    return out[:m]
+
+
+def mirror_apply_c(fn, keys: np.ndarray, update, table: np.ndarray, table_lo: np.ndarray, pool: np.ndarray,
+                   dirty: np.ndarray, cmin, cmax, thres) -> tuple[int, np.ndarray]:
+    """``mm_mirror_apply``: OctoMap's clamped update of distinct cells ``keys`` by ``update`` (float32 scalar or
+    (N,) array); returns (#cells changed, rows of ``keys`` whose occupied state flipped). Large frames run
+    on two threads, each on half of the keys (distinct cells: no two threads write one cell)."""
+    assert pool.dtype == np.float32 and dirty.dtype == np.bool_ and table.dtype == np.int32
+    keys = np.ascontiguousarray(keys, dtype=np.int64)
+    upd = None if np.ndim(update) == 0 else np.ascontiguousarray(update, dtype=np.float32)
+    shape = np.array(table.shape, dtype=np.int64)
+    tlo = np.ascontiguousarray(table_lo, dtype=np.int64)
+
+    def run(a: int, b: int) -> tuple[int, np.ndarray]:
+        flips = np.empty(b - a, dtype=np.int64)
+        n_flip = np.zeros(1, dtype=np.int64)
+        n = fn.mirror_apply(keys[a:b].ctypes.data, b - a, None if upd is None else upd[a:b].ctypes.data,
+                            float(update) if upd is None else 0.0, table.ctypes.data, tlo.ctypes.data,
+                            shape.ctypes.data, pool.ctypes.data, dirty.ctypes.data, float(cmin), float(cmax),
+                            float(thres), flips.ctypes.data, n_flip.ctypes.data)
+        if n < 0:
+            raise AssertionError("mirror block missing")   # mirror_alloc_c runs first
+        return int(n), flips[:int(n_flip[0])] + a
+
+    if len(keys) < _PARALLEL_MIN_RAYS or _threads() < 2:
+        return run(0, len(keys))
+    cut = len(keys) // 2
+    future = _pool().submit(run, cut, len(keys))
+    n_a, f_a = run(0, cut)
+    n_b, f_b = future.result()
+    return n_a + n_b, np.concatenate([f_a, f_b])
+
+
+_MARK: list[np.ndarray] = [np.zeros(0, dtype=np.uint8)]
+
+
+def zeroed_bitmap(size: int) -> np.ndarray:
+    """A zeroed uint8 bitmap of ``size`` cells, reused across frames (as the accumulators); the caller
+    zeroes the cells it marked before the next frame."""
+    if len(_MARK[0]) < size:
+        _MARK[0] = np.zeros(max(size, int(len(_MARK[0]) * 1.25)), dtype=np.uint8)
+    return _MARK[0][:size]
+
+
+def ot_nodes_c(fn, pool: np.ndarray, block_codes: np.ndarray) -> tuple[bytes, int]:
+    """``mm_ot_nodes``: (the node bytes of OctoMap's .ot stream, node count) of the known (non-NaN) cells of
+    a log-odds mirror: float32 ``pool`` of blocks of 8×8×8 cells (see integrate.LogOddsMirror),
+    ``block_codes`` (B,) each block's depth-13 code (``octree.child_order_codes(block_key >> 3)``).
+    The same bytes as ``octree.ot_stream`` of those cells."""
+    assert pool.dtype == np.float32 and pool.flags.c_contiguous
+    codes = np.asarray(block_codes, dtype=np.int64)
+    slot = np.argsort(codes, kind="stable").astype(np.int64)
+    codes = np.ascontiguousarray(codes[slot])
+    cap = (512 + 64 + 8 + 1 + 13) * len(slot) + 1     # a full block's subtree and its path to the root
+    out = np.empty(5 * cap, dtype=np.uint8)
+    n = fn.ot_nodes(pool.ctypes.data, slot.ctypes.data, codes.ctypes.data, len(slot), out.ctypes.data, cap)
+    if n < 0:
+        raise AssertionError("node bound exceeded")   # cannot happen: cap bounds every block's nodes
+    return out[:5 * n].tobytes(), int(n)
