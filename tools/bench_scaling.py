@@ -132,11 +132,12 @@ def table(results: dict) -> str:
         rs = sizes_of(results, source)
         if rs:
             n = np.array([r["n_frames"] for r in rs], float)
-            notes.append(f"- {source}: time ∝ frames^{loglog_slope(n, np.array([r['build_s'] for r in rs])):.2f} "
-                         f"(wall), ^{loglog_slope(n, np.array([r['cpu_s'] for r in rs])):.2f} (CPU); "
-                         f"map ∝ frames^{loglog_slope(n, np.array([r['map_mb'] for r in rs])):.2f}; "
-                         f"per-frame time, last 10 % / frames 10–20 % of the {rs[-1]['n_frames']}-frame build: "
-                         f"{tail_ratio(rs[-1]['frame_s']):.2f}"
+            growth = (f"time ∝ frames^{loglog_slope(n, np.array([r['build_s'] for r in rs])):.2f} (wall), "
+                      f"^{loglog_slope(n, np.array([r['cpu_s'] for r in rs])):.2f} (CPU); "
+                      f"map ∝ frames^{loglog_slope(n, np.array([r['map_mb'] for r in rs])):.2f}; "
+                      if len(rs) >= 2 else "one size only; ")
+            notes.append(f"- {source}: {growth}per-frame time, last 10 % / frames 10–20 % of the "
+                         f"{rs[-1]['n_frames']}-frame build: {tail_ratio(rs[-1]['frame_s']):.2f}"
                          + (f"; 1-frame build peak RSS {base['peak_rss_mb']:,.0f} MB" if base else ""))
     return "\n".join(lines + [""] + notes) + "\n"
 
@@ -147,7 +148,7 @@ def plot(results: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(11, 5.6))
     colours = {"lidar-fov": "tab:blue", "mono": "tab:orange", "lidar": "tab:green", "depth-gt": "tab:purple"}
     for source in sorted({r["source"] for r in results.values()}):
         rs = sizes_of(results, source)
@@ -173,7 +174,7 @@ def plot(results: dict, path: Path) -> None:
         ax.set_xlabel("frames of sequence 00 (first N)")
         ax.set_ylabel(ylabel)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     ax_t.set_title("build time")
     ax_m.set_title("memory")
     fig.tight_layout()
