@@ -23,11 +23,7 @@ PACKAGE = "mono_map"
 KNOWN_CYCLES: set[frozenset[str]] = set()
 
 # (file, line text) of private imports still present, owner in the comment.
-KNOWN_PRIVATE: set[tuple[str, str]] = {
-    # issue 13 data row (synth camera/LiDAR ray casting helper)
-    ("mono_map/data/synth/lidar.py", "from mono_map.data.synth.camera import _cast"),
-    ("tests/test_synth.py", "from mono_map.data.synth.camera import _cast"),
-}
+KNOWN_PRIVATE: set[tuple[str, str]] = set()
 
 
 # Imports against the one-way flow (see LAYERS) still present, owner in the comment.

@@ -93,7 +93,7 @@ def test_camera_drives_on_the_road(tiny_ds):
     """Consecutive poses are distinct; the ground 1.65 m below cam0 is road; the corridor ahead is free."""
     from mono_map.data.synth import FrameRenderer
     from mono_map.data.synth import materials as M
-    from mono_map.data.synth.camera import _cast
+    from mono_map.data.synth.camera import cast_rays
     from mono_map.data.synth.town import build_town
 
     poses = np.array(tiny_ds.poses)
@@ -104,7 +104,7 @@ def test_camera_drives_on_the_road(tiny_ds):
     fr = FrameRenderer(recipe, town, nthreads=1)
     origins = poses[:, :3, 3].astype(np.float32)
     down = poses[:, :3, 1].astype(np.float32)
-    ans = _cast(fr.scene, origins, down, 1)
+    ans = cast_rays(fr.scene, origins, down, 1)
     assert np.allclose(ans["t_hit"], 1.65, atol=0.05)
     prim = ans["primitive_ids"].astype(np.int64)
     assert (town.tri_material[prim] == M.GROUND).all()
@@ -158,7 +158,7 @@ def test_town_keeps_the_whole_corridor_clear():
 def test_barycentric_convention_of_raycasting():
     """Interpolating vertices with RaycastingScene's uvs reproduces the hit point (ground attributes rely on it)."""
     from mono_map.data.synth import FrameRenderer
-    from mono_map.data.synth.camera import _cast
+    from mono_map.data.synth.camera import cast_rays
     from mono_map.data.synth.town import build_town
 
     recipe = load_recipe("tiny")
@@ -169,7 +169,7 @@ def test_barycentric_convention_of_raycasting():
     d = rng.normal(size=(200, 3)).astype(np.float32)
     d[:, 1] = np.abs(d[:, 1]) + 0.3
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    ans = _cast(fr.scene, o, d, 1)
+    ans = cast_rays(fr.scene, o, d, 1)
     hit = np.isfinite(ans["t_hit"])
     assert hit.sum() > 150
     F = town.triangles[ans["primitive_ids"][hit]]

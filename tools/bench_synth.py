@@ -2,15 +2,18 @@
 
     python tools/bench_synth.py --seq 00 --frames 40 --workers 2
     python tools/bench_synth.py --seq tiny --preview docs/images/synth_frame.png --frame 3
+    python tools/bench_synth.py --seq 00 --frames 20 --compare ~/.cache/mono-map/data/kitti   # same bytes?
 
 Generates into a temporary root (never touches ./data), reports end-to-end frames/s
-(town build + worker start-up included, and the steady rate without them) and the
-per-stage time split of a single frame rendered in-process.
+(town build + worker start-up included), the CPU seconds per frame of the process and its workers
+(less sensitive to other jobs than wall time), the per-stage split (wall and CPU) of single frames
+rendered in-process, and with --compare whether the frames are byte-identical to another root's.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 import tempfile
@@ -30,22 +33,47 @@ def stage_split(recipe, town, frames=3) -> dict:
 
     fr = FrameRenderer(recipe, town, nthreads=1)
     tmp = Path(tempfile.mkdtemp())
-    out = {"camera": 0.0, "lidar": 0.0, "write": 0.0}
+    out = {"camera": 0.0, "lidar": 0.0, "write": 0.0, "camera CPU": 0.0, "lidar CPU": 0.0, "write CPU": 0.0}
     fr.render(0)
+
+    def clock():
+        return np.array([time.perf_counter(), time.process_time()])
     for i in range(frames):
         T = fr.poses[i]
-        t0 = time.perf_counter()
+        t0 = clock()
         rgb, depth = render(fr.scene, town, fr.light, fr.camera, T @ fr.T_cam0_cam2, np.random.default_rng(i), 1)
-        t1 = time.perf_counter()
+        t1 = clock()
         pts = scan(fr.scene, town, T @ fr.T_cam0_velo, fr.lidar_dirs, np.random.default_rng(i), 1)
-        t2 = time.perf_counter()
+        t2 = clock()
         writer.write_frame(tmp, i, rgb, depth, pts)
-        t3 = time.perf_counter()
-        out["camera"] += t1 - t0
-        out["lidar"] += t2 - t1
-        out["write"] += t3 - t2
+        t3 = clock()
+        for stage, (a, b) in (("camera", (t0, t1)), ("lidar", (t1, t2)), ("write", (t2, t3))):
+            out[stage] += b[0] - a[0]
+            out[f"{stage} CPU"] += b[1] - a[1]
     shutil.rmtree(tmp)
     return {k: v / frames for k, v in out.items()}
+
+
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process and its waited-for children (the render workers)."""
+    import resource
+
+    return sum(r.ru_utime + r.ru_stime for r in (resource.getrusage(resource.RUSAGE_SELF),
+                                                  resource.getrusage(resource.RUSAGE_CHILDREN)))
+
+
+def compare_frames(seq_a: Path, seq_b: Path, n: int) -> tuple[int, list[str]]:
+    """Byte-compare image_2 / depth_2 / velodyne of frames 0..n-1 of two sequence dirs: (#files, differing)."""
+    from mono_map.data.synth import writer
+
+    differ, n_files = [], 0
+    for i in range(n):
+        pa, pb = writer.frame_paths(seq_a, i), writer.frame_paths(seq_b, i)
+        for kind in pa:
+            n_files += 1
+            if not pb[kind].is_file() or pa[kind].read_bytes() != pb[kind].read_bytes():
+                differ.append(f"{pa[kind].parent.name}/{pa[kind].name}")
+    return n_files, differ
 
 
 def preview(seq_dir: Path, index: int, out: Path) -> None:
@@ -96,6 +124,8 @@ def main() -> int:
     ap.add_argument("--preview", default=None, help="write a preview PNG of frame --frame")
     ap.add_argument("--frame", type=int, default=0)
     ap.add_argument("--keep", default=None, help="generate into this root instead of a temporary one")
+    ap.add_argument("--compare", default=None,
+                    help="byte-compare the generated frames with the same frames under this data root")
     args = ap.parse_args()
 
     from mono_map.data.synth import generate_sequence, load_recipe
@@ -107,19 +137,30 @@ def main() -> int:
     t_town = time.perf_counter() - t0
     print(f"town {recipe.name}: {town.stats['triangles']:,} triangles, built in {t_town:.1f} s; {town.stats}")
     split = stage_split(recipe, town)
+    wall = {k: v for k, v in split.items() if not k.endswith("CPU")}
     print("single frame, 1 thread: " + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in split.items())
-          + f" (total {sum(split.values()) * 1000:.0f} ms)")
+          + f" (total {sum(wall.values()) * 1000:.0f} ms wall, {(sum(split.values()) - sum(wall.values())) * 1000:.0f} ms CPU)")
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_synth_"))
     n = min(args.frames, recipe.frames)
+    if args.compare and not (Path(args.compare) / "sequences" / recipe.name).is_dir():
+        ap.error(f"--compare: {Path(args.compare) / 'sequences' / recipe.name}: no such sequence directory")
     t0 = time.perf_counter()
+    cpu0 = cpu_seconds()
     seq_dir = generate_sequence(recipe, root, frames=n, workers=args.workers, force=True)
     dt = time.perf_counter() - t0
+    cpu = cpu_seconds() - cpu0
+    print(f"CPU of this process and its workers: {cpu:.1f} s = {cpu / n:.3f} CPU-s per frame "
+          f"(load average {os.getloadavg()[0]:.1f})")
     size = sum(p.stat().st_size for p in seq_dir.rglob("*") if p.is_file())
     print(f"generated {n} frames with {args.workers} workers in {dt:.1f} s: {n / dt:.2f} frames/s end to end "
           f"(incl. town build {t_town:.1f} s and worker start-up); "
           f"{size / n / 1e6:.2f} MB/frame → {size / n * 100 / 1e6:.0f} MB per 100 frames")
     if args.preview:
         preview(seq_dir, args.frame, Path(args.preview))
+    if args.compare:
+        n_files, differ = compare_frames(seq_dir, Path(args.compare) / "sequences" / recipe.name, n)
+        print(f"compared {n_files} frame files with {args.compare}: {len(differ)} differ"
+              + (": " + ", ".join(differ[:10]) if differ else " (byte-identical)"))
     if not args.keep:
         shutil.rmtree(root)
     return 0

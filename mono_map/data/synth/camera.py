@@ -64,11 +64,24 @@ class PinholeCamera:
         self.vignette = (1 - 0.18 * r2)[..., None].astype(np.float32)
 
 
-def _cast(scene, origins: np.ndarray, dirs: np.ndarray, nthreads: int) -> dict:
+def ray_buffer(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """(N, 6) float32 rays [origin | direction] as open3d's ``RaycastingScene`` takes them (origins may broadcast)."""
+    rays = np.empty((len(dirs), 6), np.float32)
+    rays[:, :3] = origins
+    rays[:, 3:] = dirs
+    return rays
+
+
+def cast_rays(scene, origins: np.ndarray, dirs: np.ndarray, nthreads: int) -> dict:
+    """Closest hits of rays from ``origins`` along unit ``dirs`` ((N, 3), world frame, metres; cast in float32).
+
+    Returns numpy arrays: ``t_hit`` (N,) distance (inf = no hit), ``primitive_ids`` (N,) triangle index,
+    ``primitive_uvs`` (N, 2) barycentric coordinates, ``primitive_normals`` (N, 3) unit geometric normals.
+    """
     import open3d as o3d
 
-    rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
-    ans = scene.cast_rays(o3d.core.Tensor(rays), nthreads=nthreads)
+    rays = ray_buffer(origins, dirs)
+    ans = scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=nthreads)
     return {k: ans[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs", "primitive_normals")}
 
 
@@ -77,14 +90,15 @@ def _occluded(scene, origins: np.ndarray, dirs: np.ndarray, nthreads: int) -> np
 
     if len(origins) == 0:
         return np.zeros(0, bool)
-    rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
-    return scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=400.0, nthreads=nthreads).numpy().astype(bool)
+    rays = ray_buffer(origins, dirs)
+    return scene.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=0.0, tfar=400.0,
+                                 nthreads=nthreads).numpy().astype(bool)
 
 
 def shade(scene, town, light: Lighting, origins: np.ndarray, dirs: np.ndarray, nthreads: int,
           bounce: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Colour (N, 3) float32, hit distance t (N,) (inf = sky) and material (N,) of rays."""
-    ans = _cast(scene, origins, dirs, nthreads)
+    ans = cast_rays(scene, origins, dirs, nthreads)
     t = ans["t_hit"]
     hit = np.isfinite(t) & (t < FAR)
     col = np.empty((len(t), 3), np.float32)

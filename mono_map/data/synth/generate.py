@@ -7,6 +7,7 @@ and two generations of the same recipe are byte-identical.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
 import sys
@@ -66,9 +67,28 @@ class FrameRenderer:
 
 _WORKER: dict = {}
 
+# Each render process runs on one core: numpy's BLAS (OpenBLAS) otherwise starts a thread per core in every
+# worker, whose spinning costs the other worker CPU. It reads these at import, so they are set in the
+# environment the spawned workers start with (the results are the same: a BLAS thread splits rows, not sums).
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+@contextlib.contextmanager
+def _environment(values: dict):
+    """``os.environ`` updated with ``values`` inside the block (for processes started there), restored after."""
+    saved = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
 
 def _init_worker(recipe, town, seq_dir, nthreads):
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
     _WORKER["renderer"] = FrameRenderer(recipe, town, nthreads)
     _WORKER["seq_dir"] = Path(seq_dir)
 
@@ -207,7 +227,9 @@ def _render_frames(recipe, town, seq_dir, todo, workers, quiet) -> None:
         return
     ctx = mp.get_context("spawn")
     nproc = min(workers, len(todo))
-    with ctx.Pool(nproc, initializer=_init_worker, initargs=(recipe, town, str(seq_dir), 1)) as pool:
+    with _environment(WORKER_ENV):
+        pool = ctx.Pool(nproc, initializer=_init_worker, initargs=(recipe, town, str(seq_dir), 1))
+    with pool:
         it = pool.imap_unordered(_render_and_write, todo, chunksize=1)
         for _ in (progress(it, total=len(todo), desc=desc, unit="frame") if not quiet else it):
             pass

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from mono_map.data.synth import materials as M
-from mono_map.data.synth.camera import _cast
+from mono_map.data.synth.camera import cast_rays
 
 N_AZIMUTH = 2083             # 0.173° steps, ~120 k returns per scan in a street
 MAX_RANGE = 120.0
@@ -46,7 +46,7 @@ def scan(scene, town, T_world_velo: np.ndarray, dirs_velo: np.ndarray, rng: np.r
     dw = dirs_velo @ R.T
     origins = np.broadcast_to(o, dw.shape)
     rng_u = rng.random(len(dw))
-    ans = _cast(scene, origins, dw, nthreads)
+    ans = cast_rays(scene, origins, dw, nthreads)
     t = ans["t_hit"]
     idx = np.nonzero(np.isfinite(t) & (t < MAX_RANGE))[0]
     t = t[idx]
@@ -63,7 +63,7 @@ def scan(scene, town, T_world_velo: np.ndarray, dirs_velo: np.ndarray, rng: np.r
     ti = np.nonzero(through)[0]
     if len(ti):
         o2 = p[ti] + 0.05 * d[ti]
-        a2 = _cast(scene, o2, d[ti], nthreads)
+        a2 = cast_rays(scene, o2, d[ti], nthreads)
         t2 = a2["t_hit"]
         ok = np.isfinite(t2) & (t[ti] + t2 < MAX_RANGE)
         lost[ti[~ok]] = True
