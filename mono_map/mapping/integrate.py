@@ -358,6 +358,8 @@ class MapIntegrator:
         idx, new, old = idx[moved], new[moved], old[moved]
         self.n_known = getattr(self, "n_known", 0) + int(np.isnan(old).sum())
         if len(idx) > self.REBUILD_RATIO * self.n_known or self._many_increments(new, old):
+            del idx, new, old                      # a rebuild needs none of these, nor the old tree:
+            self._tree = None                      # free them before it allocates (lower peak RSS)
             self._tree = self._rebuilt_tree()
             m.synced[:used] = m.pool[:used]
             self.rebuilds = getattr(self, "rebuilds", 0) + 1
