@@ -10,9 +10,10 @@ import octomap
 import pytest
 
 from mono_map.config import OctoMapConfig
+from mono_map.errors import MonoMapError
 from mono_map.eval.map_metrics import compare_leaves
 from mono_map.mapping import raycast, raycast_c
-from mono_map.mapping.integrate import MapIntegrator, exact_increments
+from mono_map.mapping.integrate import LogOddsMirror, MapIntegrator, octree_memory_usage
 from mono_map.mapping.octree import key_to_coord, morton_codes, tree_leaves
 from mono_map.mapping.scangraph import write_scan_graph
 
@@ -84,27 +85,48 @@ def test_non_discretized_rays_match(kernel):
     assert key_codes(ks.occupied) == {k for k, v in cells.items() if v > 0}
 
 
-@pytest.mark.parametrize("sync", ["rebuild", "incremental"])
-def test_batched_map_equals_insertPointCloud(kernel, sync, monkeypatch):
-    """Several frames, non-default sensor model, the tree synced after every frame either by
-    rebuilding it from a .ot stream or by bulk updates: same cells, states, log-odds and memory."""
-    monkeypatch.setattr(MapIntegrator, "REBUILD_RATIO", 0.0 if sync == "rebuild" else 1e9)
+@pytest.mark.parametrize("sync_every", [1, None])
+def test_batched_map_equals_insertPointCloud(kernel, sync_every):
+    """Several frames, non-default sensor model, the tree made from the mirror after every frame or once at
+    the end: same cells, states, log-odds, memory and .ot bytes; the counted statistics are the tree's."""
     cfg = OctoMapConfig(resolution=0.2, prob_hit=0.75, prob_miss=0.35)
-    fast = MapIntegrator(cfg, sync_every=1)
+    fast = MapIntegrator(cfg, sync_every=sync_every)
     ref = MapIntegrator(cfg, method="insertPointCloud")
     for points, origin in random_scans(2, n_frames=4):
         fast.insert(points, origin)
         ref.insert(points, origin)
-    a, b = fast.tree, ref.tree
+        counted, b = fast.stats(), ref.tree
+        assert counted["tree_nodes"] == b.size() and counted["leaf_count"] == b.getNumLeafNodes()
+        assert counted["memory_bytes"] == b.memoryUsage()
+    a = fast.finish()
+    assert fast.mirror is None and fast.stats() == counted
     cells_a, cells_b = octree_sets(a, 0.2), octree_sets(b, 0.2)
     assert cells_a.keys() == cells_b.keys()
-    same_state = sum((cells_a[k] >= 0) == (cells_b[k] >= 0) for k in cells_a) / len(cells_a)
-    assert same_state >= 0.999
-    assert all(cells_a[k] == cells_b[k] for k in cells_a)          # exact log-odds, in fact
-    assert abs(a.memoryUsage() - b.memoryUsage()) <= 0.01 * b.memoryUsage()
-    assert a.getNumLeafNodes() == b.getNumLeafNodes()
+    assert all(cells_a[k] == cells_b[k] for k in cells_a)          # exact log-odds
+    assert a.memoryUsage() == b.memoryUsage() and a.getNumLeafNodes() == b.getNumLeafNodes()
     assert a.write() == b.write()                                   # byte-identical .ot
-    assert (getattr(fast, "rebuilds", 0) > 0) == (sync == "rebuild")
+    with pytest.raises(MonoMapError, match="finish"):
+        fast.insert(*random_scans(2, n_frames=1)[0])
+
+
+def test_counted_statistics_follow_changes():
+    """The block cache of the compiled counts: after pruning (a whole 8x8x8 block and a 2x2x2 group becoming
+    equal, then unequal again) the counts equal a freshly made tree's; the memory model is OctoMap's own."""
+    fast = MapIntegrator(OctoMapConfig(resolution=0.2))
+    leaves = []
+    full = np.stack(np.meshgrid(*[np.arange(8)] * 3, indexing="ij"), axis=-1).reshape(-1, 3) + 32768
+    for step, (keys, dl) in enumerate([(full, 0.85), (full[:8], -0.4), (full[:8], 0.4), (full[100:], 2.0),
+                                       (full[(full % 2 == 0).all(1)], -3.0)]):
+        fast.mirror.update(raycast_c.load_kernel(), keys, np.full(len(keys), dl, np.float32), fast.cmin, fast.cmax,
+                           fast.occ_thres)
+        fast._pending = True
+        counted = fast.stats()
+        tree = fast.tree
+        assert (counted["tree_nodes"], counted["leaf_count"]) == (tree.size(), tree.getNumLeafNodes()), step
+        assert counted["memory_bytes"] == tree.memoryUsage() == octree_memory_usage(tree.size(),
+                                                                                     tree.getNumLeafNodes())
+        leaves.append(tree.getNumLeafNodes())
+    assert leaves[0] == 1 and leaves[1] > 1 and leaves[2] == 1        # collapsed, split, collapsed again
 
 
 def dense_scan(seed: int):
@@ -144,7 +166,6 @@ def test_dense_scans_match_insertPointCloud(kernel, max_range, discretize):
 def test_kernel_node_stream_equals_numpy_stream():
     """The .ot stream written from the mirror's blocks (compiled) is the numpy stream of the same cells, byte
     for byte, with collapsible 2x2x2 and 8x8x8 groups of equal values, partial blocks and scattered cells."""
-    from mono_map.mapping.integrate import LogOddsMirror
     from mono_map.mapping.octree import child_order_codes, ot_header, ot_stream
 
     kernel = raycast_c.load_kernel()
@@ -165,9 +186,11 @@ def test_kernel_node_stream_equals_numpy_stream():
     m.pool[idx] = vals
     nodes, n = raycast_c.ot_nodes_c(kernel, m.pool, child_order_codes(m.block_keys[:m.n_blocks] >> 3))
     ref, n_ref = ot_stream(keys, vals, 0.2)
-    assert n == n_ref and ot_header(n, 0.2) + nodes == ref
-    tree = octomap.OcTree.read(ot_header(n, 0.2) + nodes)
+    assert n == n_ref and ot_header(n, 0.2) + nodes.tobytes() == ref
+    assert m.node_stream(kernel, 0.2).tobytes() == ref                 # header + nodes in one buffer
+    tree = octomap.OcTree.read(ref)
     assert tree.getNumLeafNodes() < len(keys)                          # some groups did collapse
+    assert raycast_c.ot_counts_c(kernel, m.pool, m.block_codes()) == (tree.size(), tree.getNumLeafNodes())
 
 
 def test_changed_cells_reported():
@@ -184,19 +207,6 @@ def test_changed_cells_reported():
         freed += list(fast.insert(np.array([[0.1, 0.1, 9.1]]), origin).stopped_occupied)
     assert len(freed) == 1 and np.allclose(freed[0], [0.1, 0.1, 5.1])
     assert fast.tree.getLabels(np.array([[0.1, 0.1, 5.1]]))[0] == 0
-
-
-def test_exact_increments_reach_targets():
-    rng = np.random.default_rng(0)
-    old = rng.uniform(-2, 3.5, 10000).astype(np.float32)
-    old[:100] = np.nan
-    new = rng.uniform(-2, 3.5, 10000).astype(np.float32)
-    first, second = exact_increments(old, new)
-    base = np.where(np.isnan(old), np.float32(0), old)
-    v = (base + first).astype(np.float32)
-    two = ~np.isnan(second)
-    v[two] = (v[two] + second[two]).astype(np.float32)
-    assert np.array_equal(v, new)
 
 
 @pytest.mark.skipif(shutil.which("compare_octrees") is None, reason="octomap-tools missing")

@@ -1,24 +1,28 @@
-"""Fast exact OctoMap integration: batched ray casting + bulk updates through octomap-python.
+"""Fast exact OctoMap integration: batched ray casting + compiled updates of a log-odds mirror.
 
 Per frame: :func:`mono_map.mapping.raycast.compute_update` gives the deduplicated free and occupied
-key sets that ``insertPointCloud(..., discretize=True)`` would compute. A mirror of the leaf
-log-odds (:class:`LogOddsMirror`, float32, exactly OctoMap's arithmetic) then tells which of those
-updates would change anything: OctoMap itself skips a cell already clamped in the update's
-direction (``updateNode``'s early abort), so only the other cells are sent to the tree with
-``updateNodes`` (misses first, then hits, as OctoMap does). The tree ends up node for node the same
-as with ``insertPointCloud`` — same cell values, same pruning, same ``memoryUsage`` — and the mirror
-also yields the cells whose occupied state changed this frame, for viewers.
+key sets that ``insertPointCloud(..., discretize=True)`` would compute. They update a mirror of the
+leaf log-odds (:class:`LogOddsMirror`, float32, exactly OctoMap's ``updateNode`` arithmetic and
+clamping), which is the map while it is being built: the ``octomap.OcTree`` is made from it in one
+``.ot`` stream when it is asked for (at the end of a build), node for node the tree that
+frame-by-frame ``insertPointCloud`` builds — same cell values, same pruning, same ``memoryUsage``.
+Leaf count, node count and ``memoryUsage`` during the build are counted from the mirror (only the
+blocks changed since the last count are walked), and the mirror yields the cells whose occupied
+state changed each frame, for viewers.
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from mono_map.config import OctoMapConfig
 from mono_map.errors import MonoMapError
-from mono_map.mapping.octree import (apply_sensor_model, child_order_codes, key_to_coord, make_octree, morton_order,
+from mono_map.mapping.octree import (apply_sensor_model, child_order_codes, key_to_coord, make_octree,
                                      octree_from_cells, ot_header, sorted_unique)
 from mono_map.mapping.raycast import KeySets, compute_update
 
@@ -26,8 +30,10 @@ from mono_map.mapping.raycast import KeySets, compute_update
 class LogOddsMirror:
     """Sparse float32 copy of the leaf log-odds, indexed by OctoMap key (NaN = unknown).
 
-    Storage: blocks of 8×8×8 cells in one growing pool, found through a dense table of block
-    slots over the bounding box of blocks seen so far (which grows when needed).
+    Storage: blocks of 8×8×8 cells in one growing pool (4 bytes a cell), found through a dense table
+    of block slots over the bounding box of blocks seen so far (which grows when needed). Per block:
+    a changed-since-counted flag and the cached node / leaf counts of its subtree
+    (:meth:`tree_counts`).
     """
 
     SHIFT = 3
@@ -38,9 +44,11 @@ class LogOddsMirror:
         self.table: np.ndarray | None = None     # int32 block slot, -1 = none
         self.table_lo = np.zeros(3, dtype=np.int64)
         self.pool = np.full(0, np.nan, dtype=np.float32)     # current log-odds
-        self.synced = np.full(0, np.nan, dtype=np.float32)   # value the octree holds
-        self.dirty = np.zeros(0, dtype=bool)                  # changed since the last sync
         self.block_keys = np.zeros((0, 3), dtype=np.int64)   # key of each block's first cell
+        # per block: changed since counted, and its subtree's cached kind / value / nodes / leaves
+        self.blocks = {"dirty": np.zeros(0, dtype=bool), "kind": np.zeros(0, dtype=np.int8),
+                       "value": np.zeros(0, dtype=np.float32), "nodes": np.zeros(0, dtype=np.int64),
+                       "leaves": np.zeros(0, dtype=np.int64)}
         self.n_blocks = 0
 
     def _grow_table(self, blo: np.ndarray, bhi: np.ndarray) -> None:
@@ -113,14 +121,13 @@ class LogOddsMirror:
         bk = (np.stack(np.unravel_index(new_blocks, self.table.shape), axis=1) + self.table_lo) << self.SHIFT
         need = self.n_blocks * self.CELLS
         if need > len(self.pool):
-            cap = max(need, int(len(self.pool) * 1.5))
-            self.pool = _grow(self.pool, cap, np.nan)
-            self.synced = _grow(self.synced, cap, np.nan)
-            self.dirty = _grow(self.dirty, cap, False)
+            self.pool = _grow(self.pool, max(need, int(len(self.pool) * 1.5)), np.nan)
         if self.n_blocks > len(self.block_keys):
             cap = max(self.n_blocks, int(len(self.block_keys) * 1.5))
             self.block_keys = _grow(self.block_keys, cap, 0)
+            self.blocks = {k: _grow(a, cap, 0) for k, a in self.blocks.items()}
         self.block_keys[start:self.n_blocks] = bk
+        self.blocks["dirty"][start:self.n_blocks] = True
 
     def update(self, kernel, keys: np.ndarray, update, cmin, cmax, thres,
                bounds: tuple | None = None) -> tuple[int, np.ndarray]:
@@ -138,8 +145,8 @@ class LogOddsMirror:
         new_blocks = mirror_alloc_c(kernel, keys, self.table, self.table_lo, self.n_blocks)
         if len(new_blocks):
             self._add_blocks(new_blocks)
-        return mirror_apply_c(kernel, keys, update, self.table, self.table_lo, self.pool, self.dirty, cmin, cmax,
-                              thres)
+        return mirror_apply_c(kernel, keys, update, self.table, self.table_lo, self.pool, self.blocks["dirty"], cmin,
+                              cmax, thres)
 
     def keys_of(self, idx: np.ndarray) -> np.ndarray:
         """Keys ((N, 3) int64) of pool indices."""
@@ -158,39 +165,42 @@ class LogOddsMirror:
     def known_cells(self) -> int:
         return int(np.count_nonzero(~np.isnan(self.pool[: self.n_blocks * self.CELLS])))
 
+    def block_codes(self) -> np.ndarray:
+        """Each block's depth-13 code in OctoMap's child order (the order the octree holds them)."""
+        return child_order_codes(self.block_keys[:self.n_blocks] >> self.SHIFT)
+
+    def tree_counts(self, kernel) -> tuple[int, int]:
+        """(nodes, leaves) of the pruned octree of the known cells — OctoMap's ``size()`` and
+        ``getNumLeafNodes()`` — walking only the blocks changed since the last count (compiled kernel)."""
+        from mono_map.mapping.raycast_c import ot_counts_c
+
+        return ot_counts_c(kernel, self.pool, self.block_codes(), self.blocks)
+
+    def node_stream(self, kernel, resolution: float) -> np.ndarray:
+        """The whole ``.ot`` stream (header + nodes, uint8) of the known cells (compiled kernel)."""
+        from mono_map.mapping.raycast_c import ot_nodes_c
+
+        n, _ = self.tree_counts(kernel)
+        data, n_written = ot_nodes_c(kernel, self.pool, self.block_codes(), ot_header(n, resolution))
+        assert n_written == n
+        return data
+
     @property
     def nbytes(self) -> int:
-        return int(self.pool.nbytes + (self.table.nbytes if self.table is not None else 0))
+        return int(self.pool.nbytes + self.block_keys.nbytes + sum(a.nbytes for a in self.blocks.values())
+                   + (self.table.nbytes if self.table is not None else 0))
 
 
 def _grow(a: np.ndarray, n: int, fill) -> np.ndarray:
-    out = np.full((n,) + a.shape[1:], fill, dtype=a.dtype)
-    out[:len(a)] = a
-    return out
+    """``a`` with room for ``n`` rows, the new ones ``fill``. Resized in place (realloc: a large array is
+    remapped, not copied, so growing does not hold two copies); ``a`` must own its data and have no views."""
+    old = len(a)
+    a.resize((n,) + a.shape[1:], refcheck=False)
+    a[old:] = fill
+    return a
 
 
 _XYZ = np.dtype([("x", "f8"), ("y", "f8"), ("z", "f8")])
-
-
-def _as_tuples(points: np.ndarray) -> list:
-    """(N, 3) float64 → list of (x, y, z) tuples (the fastest input for octomap-python's updateNodes)."""
-    return np.ascontiguousarray(points, dtype=np.float64).view(_XYZ).ravel().tolist()
-
-
-def exact_increments(old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """float32 increments taking an octree value ``old`` exactly to ``new`` (old NaN = absent node, starting at 0).
-
-    Returns (first, second): apply ``first`` then, where it is not NaN, ``second``. One step
-    ``d = new - old`` works when ``float32(old + d) == new``; otherwise (``new`` much smaller than
-    ``old``) go through zero: ``-old`` then ``new``, both exact.
-    """
-    base = np.where(np.isnan(old), np.float32(0.0), old).astype(np.float32)
-    new = new.astype(np.float32)
-    d = (new - base).astype(np.float32)
-    bad = (base + d) != new
-    first = np.where(bad, -base, d).astype(np.float32)
-    second = np.where(bad, new, np.float32(np.nan)).astype(np.float32)
-    return first, second
 
 
 @dataclass
@@ -208,14 +218,13 @@ class FrameIntegration:
 class MapIntegrator:
     """An OctoMap built frame by frame with the fast exact path (or with ``insertPointCloud``).
 
-    method="batched" (default): exact batched ray casting; the updates go to the float32 mirror at
-    once and to the octree in bulk when it is needed (``tree``, ``stats()``, ``sync()``, or every
-    ``sync_every`` frames): each cell whose value changed since the last sync gets one update with
-    the exact float32 increment that takes the octree's value to the mirror's (cells grouped by
-    increment, one ``updateNodes`` call per group). Cells are independent and OctoMap prunes
-    whenever children become equal, so the synced tree equals, node for node, the tree that
-    frame-by-frame ``insertPointCloud`` builds. When many cells changed, the tree is instead
-    rebuilt from the mirror in one go (:func:`mono_map.mapping.octree.octree_from_cells`), which gives the same tree.
+    method="batched" (default): exact batched ray casting; the updates go to the float32 mirror, which
+    holds the map while it is built. ``tree`` (or ``sync()``, or every ``sync_every`` frames) makes the
+    ``octomap.OcTree`` from the mirror in one ``.ot`` stream — node for node the tree that frame-by-frame
+    ``insertPointCloud`` builds (cells are independent and OctoMap prunes whenever eight children are
+    equal). ``stats()`` counts leaves, nodes and ``memoryUsage`` from the mirror without a tree.
+    ``finish()`` hands over the tree and frees the mirror (the end of a build: the tree and the mirror
+    are never both alive at their full size, so a build's peak memory stays near the map's).
     method="insertPointCloud": octomap-python's own ``insertPointCloud(discretize=True)`` per frame
     (reference/benchmark; changed-cell lists are then empty).
     """
@@ -229,7 +238,7 @@ class MapIntegrator:
         self._tree = make_octree(self.cfg)
         self.mirror = LogOddsMirror() if method == "batched" else None
         self.sync_every = sync_every
-        self._pending = False
+        self._pending = False              # the mirror changed since the tree was made
         # OctoMap stores these as float (logodds() returns float)
         self.hit = np.float32(self._tree.getProbHitLog())
         self.miss = np.float32(self._tree.getProbMissLog())
@@ -238,17 +247,17 @@ class MapIntegrator:
         self.occ_thres = np.float32(self._tree.getOccupancyThresLog())
         self.frames = 0
         self.sync_seconds = 0.0
+        self.finished = False
 
     @property
     def tree(self):
-        """The ``octomap.OcTree``, brought up to date first."""
+        """The ``octomap.OcTree``, made from the mirror first if the mirror changed since."""
         self.sync()
         return self._tree
 
     def insert(self, points: np.ndarray, origin: np.ndarray) -> FrameIntegration:
         """Integrate one scan: (N, 3) world end points (metres) seen from world ``origin`` (3,)."""
-        import time
-
+        self._check_open()
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         origin = np.asarray(origin, dtype=np.float64).reshape(3)
         if not np.isfinite(origin).all():
@@ -279,10 +288,9 @@ class MapIntegrator:
     def insert_updates(self, upd) -> FrameIntegration:
         """Integrate one frame of per-cell log-odds updates (:class:`mono_map.mapping.distribution.CellUpdates`:
         distinct keys, float32 updates), with OctoMap's ``updateNode`` arithmetic and clamping."""
-        import time
-
         if self.method != "batched":
             raise MonoMapError("per-cell updates need the batched integration method")
+        self._check_open()
         self.frames += 1
         t0 = time.perf_counter()
         neg, pos = upd.dl < 0, upd.dl > 0
@@ -326,95 +334,97 @@ class MapIntegrator:
         new = np.where(new < self.cmin, self.cmin, new)
         new = np.where(new > self.cmax, self.cmax, new).astype(np.float32)
         self.mirror.pool[idx] = new
-        self.mirror.dirty[idx] = True
+        self.mirror.blocks["dirty"][idx // self.mirror.CELLS] = True
         self._pending = True
         was_occ = known & (old >= self.occ_thres)
         is_occ = new >= self.occ_thres
         flipped = (is_occ & ~was_occ) | (was_occ & ~is_occ)
         return len(idx), key_to_coord(keys[change][flipped], self.cfg.resolution)
 
-    # measured here: a full rebuild costs ~0.4 µs per known cell, bulk updates ~2.5 µs per changed cell
-    REBUILD_RATIO = 0.15
+    def _check_open(self) -> None:
+        if self.finished:
+            raise MonoMapError("integrator: finish() was called; no more frames can be integrated")
 
     def sync(self) -> float:
-        """Bring the octree up to the mirror; returns seconds spent.
-
-        Few changed cells: exact increments through ``updateNodes``. Many (relative to the map):
-        rebuild the whole tree from the mirror in one ``.ot`` stream (:func:`~mono_map.mapping.octree.octree_from_cells`) — the same tree.
-        """
-        import time
-
+        """Make the octree from the mirror if the mirror changed since it was last made; returns seconds."""
         if self.mirror is None or not self._pending:
             return 0.0
         t0 = time.perf_counter()
-        m = self.mirror
-        used = m.n_blocks * m.CELLS
-        idx = np.flatnonzero(m.dirty[:used])
-        m.dirty[idx] = False
+        self._tree = None                      # the old tree is not needed: free it first (lower peak RSS)
+        self._tree = self._tree_from_mirror()
         self._pending = False
-        new = m.pool[idx]
-        old = m.synced[idx]
-        moved = ~(new == old)                       # NaN old (absent) counts as moved
-        idx, new, old = idx[moved], new[moved], old[moved]
-        self.n_known = getattr(self, "n_known", 0) + int(np.isnan(old).sum())
-        if len(idx) > self.REBUILD_RATIO * self.n_known or self._many_increments(new, old):
-            del idx, new, old                      # a rebuild needs none of these, nor the old tree:
-            self._tree = None                      # free them before it allocates (lower peak RSS)
-            self._tree = self._rebuilt_tree()
-            m.synced[:used] = m.pool[:used]
-            self.rebuilds = getattr(self, "rebuilds", 0) + 1
-        elif len(idx):
-            keys = m.keys_of(idx)
-            order = morton_order(keys)             # tree locality: several times faster updates
-            keys, new, old, idx = keys[order], new[order], old[order], idx[order]
-            first, second = exact_increments(old, new)
-            centres = key_to_coord(keys, self.cfg.resolution)
-            self._update_grouped(centres, first)
-            two = ~np.isnan(second)
-            if two.any():
-                self._update_grouped(centres[two], second[two])
-            m.synced[idx] = new
         dt = time.perf_counter() - t0
         self.sync_seconds += dt
         return dt
 
-    def _rebuilt_tree(self):
-        """A new octree holding exactly the mirror's known cells (one .ot stream read by OctoMap)."""
-        from mono_map.mapping.raycast_c import load_kernel, ot_nodes_c
+    def finish(self):
+        """The finished ``octomap.OcTree``; the mirror is freed before the tree is allocated (no more frames)."""
+        if self.mirror is not None and self._pending:
+            t0 = time.perf_counter()
+            self._tree = None
+            self._tree = self._tree_from_mirror(release=True)
+            self._pending = False
+            self.sync_seconds += time.perf_counter() - t0
+        self.mirror = None
+        self.finished = True
+        return self._tree
+
+    def _tree_from_mirror(self, release: bool = False):
+        """A new octree holding exactly the mirror's known cells (one .ot stream read by OctoMap); with
+        ``release``, the mirror is dropped once the stream is written, before OctoMap reads it."""
+        from mono_map.mapping.raycast_c import load_kernel
 
         m = self.mirror
         kernel = load_kernel()
         if kernel is None or m.n_blocks == 0:
             known = np.flatnonzero(~np.isnan(m.pool[:m.n_blocks * m.CELLS]))
-            return octree_from_cells(m.keys_of(known), m.pool[known], self.cfg)
+            keys, values = m.keys_of(known), m.pool[known]
+            if release:
+                self.mirror = m = None
+            return octree_from_cells(keys, values, self.cfg)
         import octomap
 
-        nodes, n = ot_nodes_c(kernel, m.pool, child_order_codes(m.block_keys[:m.n_blocks] >> m.SHIFT))   # from the blocks
-        if n == 0:
-            return make_octree(self.cfg)
-        return apply_sensor_model(octomap.OcTree.read(ot_header(n, self.cfg.resolution) + nodes), self.cfg)
-
-    MAX_GROUPS = 2048   # distinct increments beyond which one updateNodes call per group costs more than a rebuild
-
-    def _many_increments(self, new: np.ndarray, old: np.ndarray) -> bool:
-        """True when the updates would need more than MAX_GROUPS ``updateNodes`` calls (per-cell distribution
-        updates: nearly every cell its own increment)."""
-        inc = (new - np.where(np.isnan(old), np.float32(0.0), old)).astype(np.float32)
-        return len(sorted_unique(inc.view(np.uint32))) > self.MAX_GROUPS
-
-    def _update_grouped(self, centres: np.ndarray, increments: np.ndarray) -> None:
-        """``updateNodes`` once per distinct float32 increment."""
-        bits = np.ascontiguousarray(increments, dtype=np.float32).view(np.uint32)
-        order = np.argsort(bits, kind="stable")          # stable: Morton order kept within a group
-        sb = bits[order]
-        cuts = np.flatnonzero(np.diff(sb)) + 1
-        for rows in np.split(order, cuts):
-            value = float(increments[rows[0]])
-            self._tree.updateNodes(_as_tuples(centres[rows]), value)
+        data = m.node_stream(kernel, self.cfg.resolution)
+        if release:
+            self.mirror = m = None
+        with tempfile.TemporaryDirectory(prefix="mono-map-ot-") as tmp:
+            # OctoMap reads a file as a stream; a bytes argument would be copied twice more in memory
+            path = os.path.join(tmp, "map.ot")
+            data.tofile(path)
+            del data
+            tree = octomap.OcTree.read(path.encode())
+        return apply_sensor_model(tree, self.cfg)
 
     def stats(self) -> dict:
-        """Leaf count and memory (OctoMap's ``memoryUsage``, MB = 2**20 bytes); syncs and traverses the tree."""
-        tree = self.tree
-        mem = int(tree.memoryUsage())
-        return {"leaf_count": int(tree.getNumLeafNodes()), "memory_bytes": mem,
-                "memory_mb": mem / 2**20, "tree_nodes": int(tree.size())}
+        """Leaf count, node count and memory (OctoMap's ``memoryUsage``, MB = 2**20 bytes) of the map's octree,
+        counted from the mirror (no tree is made) or read from the tree."""
+        from mono_map.mapping.raycast_c import load_kernel
+
+        kernel = load_kernel()
+        if self.mirror is not None and kernel is not None:
+            nodes, leaves = self.mirror.tree_counts(kernel)
+            mem = octree_memory_usage(nodes, leaves)
+        else:
+            tree = self.tree
+            nodes, leaves, mem = int(tree.size()), int(tree.getNumLeafNodes()), int(tree.memoryUsage())
+        return {"leaf_count": leaves, "memory_bytes": mem, "memory_mb": mem / 2**20, "tree_nodes": nodes}
+
+
+_MEMORY_MODEL: list[tuple[int, int, int]] = []
+
+
+def octree_memory_usage(nodes: int, leaves: int) -> int:
+    """OctoMap's ``memoryUsage()`` (bytes) of an ``OcTree`` with ``nodes`` nodes of which ``leaves`` are leaves:
+    the tree object + a node per node + an array of 8 child pointers per inner node. The three sizes are
+    read from octomap-python itself (an empty tree, ``memoryUsageNode()``, a one-leaf tree of 17 nodes)."""
+    if not _MEMORY_MODEL:
+        import octomap
+
+        t = octomap.OcTree(0.1)
+        base, node = int(t.memoryUsage()), int(t.memoryUsageNode())
+        t.updateNode(np.array([0.05, 0.05, 0.05]), True)
+        assert t.size() == 17 and t.getNumLeafNodes() == 1
+        children = (int(t.memoryUsage()) - base - 17 * node) // 16
+        _MEMORY_MODEL.append((base, node, children))
+    base, node, children = _MEMORY_MODEL[0]
+    return base + node * nodes + children * (nodes - leaves) if nodes else base

@@ -339,7 +339,7 @@ int64_t mm_mirror_alloc(const int64_t *keys, int64_t n, int32_t *table, const in
 
 /* OctoMap's updateNode(key, log-odds update) for n distinct cells on the mirror (every block allocated): a cell
    already clamped in the update's direction is left alone (updateNode's early abort), otherwise
-   new = clamp((known ? old : 0) + u) (float arithmetic), dirty[cell] = 1. upd: per-key updates, or NULL for
+   new = clamp((known ? old : 0) + u) (float arithmetic), dirty[block slot] = 1. upd: per-key updates, or NULL for
    u_all. Rows whose occupied state (>= thres) flipped go to flip_rows (count in *n_flip). Returns the number of
    cells changed, -2 if a block is missing. */
 int64_t mm_mirror_apply(const int64_t *keys, int64_t n, const float *upd, float u_all, const int32_t *table,
@@ -360,7 +360,7 @@ int64_t mm_mirror_apply(const int64_t *keys, int64_t n, const float *upd, float 
         if (v < cmin) v = cmin;
         if (v > cmax) v = cmax;
         pool[x] = v;
-        dirty[x] = 1;
+        dirty[table[f]] = 1;
         ++changed;
         int was = known && old >= thres, is = v >= thres;
         if (was != is) flip_rows[nf++] = i;
@@ -372,11 +372,17 @@ int64_t mm_mirror_apply(const int64_t *keys, int64_t n, const float *upd, float 
 /* OctoMap's .ot node stream (mono_map/mapping/octree.py: pre-order, per node float32 log-odds + child-mask
    byte; eight equal leaf children collapse into their parent, an inner node holds its children's maximum) of
    the mirror's known cells, straight from its 8x8x8 blocks: block b (pool + slot[b] * 512) at depth-13 code
-   codes[b] (z, y, x bits interleaved), blocks sorted by code. */
-struct ot_ctx { uint8_t *out; int64_t pos, cap; int err; const float *pool; const int64_t *slot; const int64_t *codes; };
+   codes[b] (z, y, x bits interleaved), blocks sorted by code. With out == NULL the same walk only counts the
+   nodes and leaves (the tree OctoMap would hold), and with a block cache (per block slot: dirty flag, kind,
+   value, nodes, leaves) only the blocks marked dirty are walked, the others read from the cache. */
+struct ot_ctx {
+    uint8_t *out; int64_t pos, cap, leaves; int err; const float *pool; const int64_t *slot; const int64_t *codes;
+    uint8_t *bdirty; int8_t *bkind; float *bval; int64_t *bnodes, *bleaves;
+};
 
 static inline void ot_put(struct ot_ctx *c, int64_t p, float v, uint8_t mask)
 {
+    if (!c->out) return;
     memcpy(c->out + 5 * p, &v, 4);
     c->out[5 * p + 4] = mask;
 }
@@ -396,7 +402,9 @@ static int ot_child_sum(struct ot_ctx *c, int64_t p, const int *kind, const floa
     }
     if (!mask) { c->pos = p; return 0; }
     *v = vmax;
-    if (mask == 0xFF && nleaf == 8 && vmin == vmax) { c->pos = p + 1; ot_put(c, p, vmax, 0); return 2; }
+    if (mask == 0xFF && nleaf == 8 && vmin == vmax) {   /* eight leaves become one */
+        c->pos = p + 1; c->leaves -= 7; ot_put(c, p, vmax, 0); return 2;
+    }
     ot_put(c, p, vmax, mask);
     return 1;
 }
@@ -408,6 +416,7 @@ static int ot_cells(struct ot_ctx *c, const float *blk, int s, int x, int y, int
         if (isnan(f)) return 0;
         if (c->pos >= c->cap) { c->err = 1; return 0; }
         ot_put(c, c->pos++, f, 0);
+        ++c->leaves;
         *v = f;
         return 2;
     }
@@ -420,9 +429,30 @@ static int ot_cells(struct ot_ctx *c, const float *blk, int s, int x, int y, int
     return ot_child_sum(c, p, kind, vals, v);
 }
 
+/* One block's subtree: walked, or read from the block cache when it has not changed since it was cached. */
+static int ot_block(struct ot_ctx *c, int64_t b, float *v)
+{
+    int64_t s = c->slot[b];
+    if (c->bkind && !c->bdirty[s]) {
+        c->pos += c->bnodes[s];
+        c->leaves += c->bleaves[s];
+        *v = c->bval[s];
+        return c->bkind[s];
+    }
+    int64_t p0 = c->pos, l0 = c->leaves;
+    float w = 0.0f;
+    int k = ot_cells(c, c->pool + s * 512, 8, 0, 0, 0, &w);
+    *v = w;
+    if (c->bkind) {
+        c->bnodes[s] = c->pos - p0; c->bleaves[s] = c->leaves - l0;
+        c->bkind[s] = (int8_t) k; c->bval[s] = w; c->bdirty[s] = 0;
+    }
+    return k;
+}
+
 static int ot_blocks(struct ot_ctx *c, int depth, int64_t a, int64_t b, float *v)
 {
-    if (depth == 13) return ot_cells(c, c->pool + c->slot[a] * 512, 8, 0, 0, 0, v);
+    if (depth == 13) return ot_block(c, a, v);
     if (c->pos >= c->cap) { c->err = 1; return 0; }
     int64_t p = c->pos++;
     int shift = 3 * (12 - depth), kind[8] = {0, 0, 0, 0, 0, 0, 0, 0};
@@ -437,14 +467,18 @@ static int ot_blocks(struct ot_ctx *c, int depth, int64_t a, int64_t b, float *v
     return ot_child_sum(c, p, kind, vals, v);
 }
 
-/* Writes the stream's nodes (5 bytes each) to out (cap nodes); returns their number, -1 if cap is too small. */
+/* Writes the stream's nodes (5 bytes each) to out (cap nodes; out == NULL: count only); returns their number,
+   -1 if cap is too small; *leaves: the leaf count. bdirty ... bleaves: the block cache, or all NULL. */
 int64_t mm_ot_nodes(const float *pool, const int64_t *slot, const int64_t *codes, int64_t n_blocks, uint8_t *out,
-                    int64_t cap)
+                    int64_t cap, int64_t *leaves, uint8_t *bdirty, int8_t *bkind, float *bval, int64_t *bnodes,
+                    int64_t *bleaves)
 {
-    struct ot_ctx c = {out, 0, cap, 0, pool, slot, codes};
+    struct ot_ctx c = {out, 0, out ? cap : INT64_MAX, 0, 0, pool, slot, codes, bdirty, bkind, bval, bnodes, bleaves};
     float v;
+    *leaves = 0;
     if (n_blocks == 0) return 0;
     ot_blocks(&c, 0, 0, n_blocks, &v);
+    *leaves = c.leaves;
     return c.err ? -1 : c.pos;
 }
 """
@@ -501,7 +535,7 @@ def load_kernel():
                            ("box_keys", [p, i64, p, p, p]),
                            ("mirror_alloc", [p, i64, p, p, p, i64, p]),
                            ("mirror_apply", [p, i64, p, f32, p, p, p, p, p, f32, f32, f32, p, p]),
-                           ("ot_nodes", [p, p, p, i64, p, i64])):
+                           ("ot_nodes", [p, p, p, i64, p, i64, p, p, p, p, p, p])):
             cfn = getattr(lib, "mm_" + name)
             cfn.argtypes = args
             cfn.restype = None if name == "box_keys" else i64
@@ -792,18 +826,47 @@ def zeroed_bitmap(size: int) -> np.ndarray:
     return _MARK[0][:size]
 
 
-def ot_nodes_c(fn, pool: np.ndarray, block_codes: np.ndarray) -> tuple[bytes, int]:
-    """``mm_ot_nodes``: (the node bytes of OctoMap's .ot stream, node count) of the known (non-NaN) cells of
-    a log-odds mirror: float32 ``pool`` of blocks of 8×8×8 cells (see integrate.LogOddsMirror),
-    ``block_codes`` (B,) each block's depth-13 code (``octree.child_order_codes(block_key >> 3)``).
-    The same bytes as ``octree.ot_stream`` of those cells."""
-    assert pool.dtype == np.float32 and pool.flags.c_contiguous
+def _blocks_in_code_order(block_codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(block slots sorted by their depth-13 code, the sorted codes), as ``mm_ot_nodes`` walks them."""
     codes = np.asarray(block_codes, dtype=np.int64)
     slot = np.argsort(codes, kind="stable").astype(np.int64)
-    codes = np.ascontiguousarray(codes[slot])
+    return slot, np.ascontiguousarray(codes[slot])
+
+
+def ot_nodes_c(fn, pool: np.ndarray, block_codes: np.ndarray, header: bytes = b"") -> tuple[np.ndarray, int]:
+    """``mm_ot_nodes``: (``header`` + the node bytes of OctoMap's .ot stream as a uint8 array, node count) of the
+    known (non-NaN) cells of a log-odds mirror: float32 ``pool`` of blocks of 8×8×8 cells (see
+    integrate.LogOddsMirror), ``block_codes`` (B,) each block's depth-13 code
+    (``octree.child_order_codes(block_key >> 3)``). The nodes are the same bytes as ``octree.ot_stream`` of
+    those cells. The buffer is sized for the worst case but only the written pages take memory."""
+    assert pool.dtype == np.float32 and pool.flags.c_contiguous
+    slot, codes = _blocks_in_code_order(block_codes)
     cap = (512 + 64 + 8 + 1 + 13) * len(slot) + 1     # a full block's subtree and its path to the root
-    out = np.empty(5 * cap, dtype=np.uint8)
-    n = fn.ot_nodes(pool.ctypes.data, slot.ctypes.data, codes.ctypes.data, len(slot), out.ctypes.data, cap)
+    h = len(header)
+    out = np.empty(h + 5 * cap, dtype=np.uint8)
+    out[:h] = np.frombuffer(header, dtype=np.uint8)
+    leaves = np.zeros(1, dtype=np.int64)
+    n = fn.ot_nodes(pool.ctypes.data, slot.ctypes.data, codes.ctypes.data, len(slot), out[h:].ctypes.data, cap,
+                    leaves.ctypes.data, None, None, None, None, None)
     if n < 0:
         raise AssertionError("node bound exceeded")   # cannot happen: cap bounds every block's nodes
-    return out[:5 * n].tobytes(), int(n)
+    return out[:h + 5 * n], int(n)
+
+
+def ot_counts_c(fn, pool: np.ndarray, block_codes: np.ndarray, cache: dict | None = None) -> tuple[int, int]:
+    """``mm_ot_nodes`` counting only: (nodes, leaves) of the octree the mirror's known cells make (OctoMap's
+    ``size()`` and ``getNumLeafNodes()``). ``cache``: per block slot arrays ``dirty`` (bool), ``kind`` (int8),
+    ``value`` (float32), ``nodes`` and ``leaves`` (int64): only dirty blocks are walked; they are cached and
+    marked clean."""
+    slot, codes = _blocks_in_code_order(block_codes)
+    leaves = np.zeros(1, dtype=np.int64)
+    if cache is None:
+        ptrs = (None,) * 5
+    else:
+        arrays = (cache["dirty"], cache["kind"], cache["value"], cache["nodes"], cache["leaves"])
+        for a, dt in zip(arrays, (np.bool_, np.int8, np.float32, np.int64, np.int64)):
+            assert a.dtype == dt and a.flags.c_contiguous and len(a) >= len(slot)
+        ptrs = tuple(a.ctypes.data for a in arrays)
+    n = fn.ot_nodes(pool.ctypes.data, slot.ctypes.data, codes.ctypes.data, len(slot), None, 0, leaves.ctypes.data,
+                    *ptrs)
+    return int(n), int(leaves[0])
