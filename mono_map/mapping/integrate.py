@@ -359,6 +359,9 @@ class MapIntegrator:
 
     def finish(self):
         """The finished ``octomap.OcTree``; the mirror is freed before the tree is allocated (no more frames)."""
+        from mono_map.mapping.raycast_c import release_buffers
+
+        release_buffers()
         if self.mirror is not None and self._pending:
             t0 = time.perf_counter()
             self._tree = None

@@ -818,6 +818,12 @@ def mirror_apply_c(fn, keys: np.ndarray, update, table: np.ndarray, table_lo: np
 _MARK: list[np.ndarray] = [np.zeros(0, dtype=np.uint8)]
 
 
+def release_buffers() -> None:
+    """Free the per-frame buffers kept between frames (visited bitmap, accumulators): at the end of a build."""
+    _MARK[0] = np.zeros(0, dtype=np.uint8)
+    _ACC[0] = _ACC[1] = np.zeros(0, dtype=np.float32)
+
+
 def zeroed_bitmap(size: int) -> np.ndarray:
     """A zeroed uint8 bitmap of ``size`` cells, reused across frames (as the accumulators); the caller
     zeroes the cells it marked before the next frame."""
