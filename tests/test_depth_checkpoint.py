@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from mono_map.depth.inference import DepthPredictor, fit_size, load_checkpoint, save_checkpoint
+from mono_map.depth.inference import DepthPredictor, default_precision, fit_size, load_checkpoint, save_checkpoint
 from mono_map.depth.networks import DepthNet, named_config
 from mono_map.errors import MonoMapError
 
@@ -64,3 +64,16 @@ def test_mismatched_weights_and_bins(tmp_path, ckpt):
     torch.save(payload, tmp_path / "wrong_bins.pt")
     with pytest.raises(MonoMapError, match="wrong_bins.pt.*bins"):
         load_checkpoint(tmp_path / "wrong_bins.pt")
+
+
+def test_default_precision_reads_the_cpu_flags(monkeypatch):
+    """bfloat16 where the CPU has AMX or AVX-512 BF16 instructions, fp32 otherwise (also for a flag that only
+    contains the name, e.g. 'avx512_bf16x'); $MONO_MAP_PRECISION overrides."""
+    monkeypatch.delenv("MONO_MAP_PRECISION", raising=False)
+    info = "processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f {}\nbugs\t\t: none\n"
+    assert default_precision(info.format("amx_bf16 amx_tile")) == "bf16"
+    assert default_precision(info.format("avx512_bf16")) == "bf16"
+    assert default_precision(info.format("avx512_bf16x")) == "fp32"
+    assert default_precision(info.format("")) == "fp32"
+    monkeypatch.setenv("MONO_MAP_PRECISION", "fp32")
+    assert default_precision(info.format("amx_bf16")) == "fp32"

@@ -33,16 +33,21 @@ class DepthPrediction:
     p_beyond: np.ndarray | None = None  # H×W float32, probability of no surface within the bin range (sky)
 
 
-def default_precision() -> str:
-    """"bf16" on CPUs with AMX (bfloat16 matrix tiles: the network runs ~2x faster, logits change by
-    ~1e-3), else "fp32" (without AMX bfloat16 is slower than fp32 on a CPU)."""
+def default_precision(cpuinfo: str | None = None) -> str:
+    """"bf16" on CPUs with bfloat16 matrix instructions — AMX (``amx_bf16``) or AVX-512 BF16
+    (``avx512_bf16``) — else "fp32" (emulated bfloat16 is slower than fp32). Measured on the project's
+    machines, full ``predict`` of a 376×1241 frame, one thread: 28 vs 62 ms network time with AMX (Xeon),
+    71 vs 133 ms with AVX-512 BF16 (AMD EPYC); depths change by < 1 cm. ``$MONO_MAP_PRECISION`` overrides.
+    ``cpuinfo``: the text of /proc/cpuinfo (read when None)."""
     if os.environ.get("MONO_MAP_PRECISION") in ("fp32", "bf16"):
         return os.environ["MONO_MAP_PRECISION"]
-    try:
-        flags = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return "fp32"
-    return "bf16" if " amx_bf16" in flags else "fp32"
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return "fp32"
+    flags = {f for line in cpuinfo.splitlines() if line.startswith("flags") for f in line.split(":", 1)[-1].split()}
+    return "bf16" if flags & {"amx_bf16", "avx512_bf16"} else "fp32"
 
 
 def default_checkpoint(head: str = "binary") -> Path:
