@@ -169,19 +169,21 @@ class LogOddsMirror:
         """Each block's depth-13 code in OctoMap's child order (the order the octree holds them)."""
         return child_order_codes(self.block_keys[:self.n_blocks] >> self.SHIFT)
 
-    def tree_counts(self, kernel) -> tuple[int, int]:
+    def tree_counts(self, kernel, codes: np.ndarray | None = None) -> tuple[int, int]:
         """(nodes, leaves) of the pruned octree of the known cells — OctoMap's ``size()`` and
-        ``getNumLeafNodes()`` — walking only the blocks changed since the last count (compiled kernel)."""
+        ``getNumLeafNodes()`` — walking only the blocks changed since the last count (compiled kernel).
+        codes: :meth:`block_codes`, if the caller has them."""
         from mono_map.mapping.raycast_c import ot_counts_c
 
-        return ot_counts_c(kernel, self.pool, self.block_codes(), self.blocks)
+        return ot_counts_c(kernel, self.pool, self.block_codes() if codes is None else codes, self.blocks)
 
     def node_stream(self, kernel, resolution: float) -> np.ndarray:
         """The whole ``.ot`` stream (header + nodes, uint8) of the known cells (compiled kernel)."""
         from mono_map.mapping.raycast_c import ot_nodes_c
 
-        n, _ = self.tree_counts(kernel)
-        data, n_written = ot_nodes_c(kernel, self.pool, self.block_codes(), ot_header(n, resolution))
+        codes = self.block_codes()
+        n, _ = self.tree_counts(kernel, codes)
+        data, n_written = ot_nodes_c(kernel, self.pool, codes, ot_header(n, resolution))
         assert n_written == n
         return data
 
@@ -198,9 +200,6 @@ def _grow(a: np.ndarray, n: int, fill) -> np.ndarray:
     a.resize((n,) + a.shape[1:], refcheck=False)
     a[old:] = fill
     return a
-
-
-_XYZ = np.dtype([("x", "f8"), ("y", "f8"), ("z", "f8")])
 
 
 @dataclass
@@ -345,29 +344,26 @@ class MapIntegrator:
         if self.finished:
             raise MonoMapError("integrator: finish() was called; no more frames can be integrated")
 
-    def sync(self) -> float:
-        """Make the octree from the mirror if the mirror changed since it was last made; returns seconds."""
+    def sync(self, release: bool = False) -> float:
+        """Make the octree from the mirror if the mirror changed since it was last made; returns seconds.
+        ``release``: the mirror is dropped once the stream is written (see :meth:`finish`)."""
         if self.mirror is None or not self._pending:
             return 0.0
         t0 = time.perf_counter()
         self._tree = None                      # the old tree is not needed: free it first (lower peak RSS)
-        self._tree = self._tree_from_mirror()
+        self._tree = self._tree_from_mirror(release)
         self._pending = False
         dt = time.perf_counter() - t0
         self.sync_seconds += dt
         return dt
 
     def finish(self):
-        """The finished ``octomap.OcTree``; the mirror is freed before the tree is allocated (no more frames)."""
+        """The finished ``octomap.OcTree``; the per-frame buffers and the mirror are freed before the tree is
+        allocated (no more frames)."""
         from mono_map.mapping.raycast_c import release_buffers
 
         release_buffers()
-        if self.mirror is not None and self._pending:
-            t0 = time.perf_counter()
-            self._tree = None
-            self._tree = self._tree_from_mirror(release=True)
-            self._pending = False
-            self.sync_seconds += time.perf_counter() - t0
+        self.sync(release=True)
         self.mirror = None
         self.finished = True
         return self._tree
