@@ -25,8 +25,8 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """synth (if missing) → LiDAR-FOV map → mono keep 0.8 map streamed to a rerun recording →
-    mono keep 1.0 map → the mapping table, sweep plot and top-down pictures."""
+    """synth (if missing) → LiDAR-FOV map → mono keep 0.8 map streamed to a rerun recording and the
+    mono keep 1.0 map, in one prediction pass → the mapping table, sweep plot and top-down pictures."""
     import time
 
     from mono_map.config import OctoMapConfig
@@ -35,7 +35,8 @@ def run(args: argparse.Namespace) -> int:
     from mono_map.frames import first_frames, frames_tag, parse_frames
     from mono_map.mapping.build import load_predictor
     from mono_map.mapping.commands import DEFAULT_FRAMES, run_table
-    from mono_map.mapping.jobs import MapJob, build_and_write, model_digest, reusable
+    from mono_map.mapping.jobs import (MapJob, MapRequest, build_and_write, build_and_write_all, model_digest,
+                                       reusable)
     from mono_map.viz.rerun_stream import RerunMapLogger
 
     t0 = time.perf_counter()
@@ -57,21 +58,28 @@ def run(args: argparse.Namespace) -> int:
     if not reusable(ref_bt, ref_job)[0]:
         print("[1/3] LiDAR-FOV reference map", flush=True)
         build_and_write(ref_job, seq, out_dir)
-    # 2. the uncertainty-aware monocular map, streamed to a rerun recording while it grows
+    # 2. the uncertainty-aware monocular map, streamed to a rerun recording while it grows, and the
+    #    vanilla monocular map (keep 1.0) built in the same pass: each frame is predicted once for both
     rrd = out_dir / f"demo_mono-keep0.8_{tag}.rrd"
     keep_job = MapJob.of(seq, "mono", frames, keep=0.8, octomap=cfg, digest=digest)
+    all_job = MapJob.of(seq, "mono", frames, keep=1.0, octomap=cfg, digest=digest)
+    requests = []
     if not reusable(keep_job.path(out_dir), keep_job)[0] or not rrd.exists():
-        print(f"[2/3] monocular map, keep 0.8, recorded to {rrd}", flush=True)
-
         def logger(path):
             # the map is re-sent every 5 frames (images and stats every frame): keeps the recording
             # near 0.56 MB/frame instead of ~1 MB/frame
             return RerunMapLogger(rrd=path, reference_map=ref_bt, resolution=cfg.resolution,
                                   image_size=seq.image_size, map_every=5)
 
-        build_and_write(keep_job, seq, out_dir, predictor=predictor, rrd=rrd, logger=logger)
+        requests.append(MapRequest(keep_job, rrd=rrd, logger=logger))
+    if not reusable(all_job.path(out_dir), all_job)[0]:
+        requests.append(MapRequest(all_job))
+    if requests:
+        keeps = ", ".join(f"keep {r.job.keep:.1f}" for r in requests)
+        print(f"[2/3] monocular maps ({keeps}; keep 0.8 recorded to {rrd}), one prediction per frame", flush=True)
+        build_and_write_all(requests, seq, out_dir, predictor=predictor)
     # 3. the vanilla monocular map and the table (maps built by the same job are reused)
-    print("[3/3] monocular map, keep 1.0, and the mapping table", flush=True)
+    print("[3/3] the mapping table", flush=True)
     run_table(TableJob(seq=args.seq, data_root=args.data_root, frames=selection, out=str(out_dir),
                        keeps=(0.8, 1.0), stride=1, model=None, octomap=cfg, paper_only=True))
     print(f"recording: {rrd}  (open it with: mono-map view {rrd})")

@@ -255,6 +255,7 @@ def test_cli_table_and_sweep(tiny_root, tmp_path, capsys):
               "--table", "--keeps", "0.5", "--model", "oracle", "--stride", "4"]
     assert cli_main(common) == 0
     text = capsys.readouterr().out
+    assert "building 6 maps in one pass" in text   # LiDAR-FOV, depth-gt, keeps 1.0/0.8/0.5, distribution
     assert "| mono keep 0.8 |" in text and "| mono (keep 1.0) |" in text and "| mono keep 0.5 |" in text
     stem = "table_f0-3_res0.2_model-oracle"
     rows = json.loads((out / f"{stem}.json").read_text())["rows"]
@@ -343,3 +344,48 @@ def test_build_never_inserts_beyond_range_pixels(tiny_root):
     assert mask.any() and not mask[:h].any()
     with pytest.raises(MonoMapError, match="p_beyond"):
         select_pixels(np.ones((4, 4)), np.zeros((4, 4)), 1.0, p_beyond=np.zeros((3, 4)))
+
+
+class CountingOracle(NoisyGroundTruthPredictor):
+    """The oracle, counting its predictions per frame (and whether bin probabilities were asked for)."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls = []
+
+    def predict_frame(self, seq, i, image=None, with_probs=False):
+        self.calls.append((int(i), bool(with_probs)))
+        return super().predict_frame(seq, i, image, with_probs=with_probs)
+
+
+def test_maps_of_one_pass_equal_maps_built_alone_and_predict_once(tiny_root, tmp_path):
+    from mono_map.mapping.build import build_maps
+    from mono_map.mapping.jobs import MapRequest, build_and_write_all
+    from mono_map.mapping.octree import tree_leaves
+
+    seq = open_sequence(tiny_root, "tiny")
+    specs = [dict(source="mono", keep=1.0, stride=4), dict(source="mono", keep=0.5, stride=4),
+             dict(source="mono", integrate="distribution", stride=4), dict(source="lidar-fov")]
+    shared = CountingOracle()
+    together = build_maps(seq, [dict(s, predictor=shared) for s in specs], frames=range(0, 3), show_progress=False)
+    assert shared.calls == [(0, True), (1, True), (2, True)]     # one prediction per frame for three mono maps
+    for spec, res in zip(specs, together):
+        alone = build_map(seq, frames=range(0, 3), predictor=NoisyGroundTruthPredictor(), show_progress=False, **spec)
+        a, b = tree_leaves(res.tree), tree_leaves(alone.tree)
+        assert np.array_equal(a.start, b.start) and np.array_equal(a.length, b.length), spec
+        assert np.array_equal(a.value, b.value) and a.occupied.any(), spec
+        assert res.stats["memory_bytes"] == alone.stats["memory_bytes"]
+        assert res.stats["points_kept"] == alone.stats["points_kept"]
+    # published together, each map byte-identical to the one built and written alone
+    jobs = [MapJob.of(seq, "mono", range(0, 3), keep=k, stride=4, model="oracle") for k in (1.0, 0.5)]
+    written = build_and_write_all([MapRequest(j) for j in jobs], seq, tmp_path / "pass",
+                                  predictor=NoisyGroundTruthPredictor(), show_progress=False)
+    for job, (bt, stats) in zip(jobs, written):
+        alone, _ = build_and_write(job, seq, tmp_path / "alone", predictor=NoisyGroundTruthPredictor(),
+                                   show_progress=False)
+        assert bt == job.path(tmp_path / "pass") and bt.read_bytes() == alone.read_bytes()
+        assert reusable(bt, job) == (True, "") and stats["bt_bytes"] == bt.stat().st_size
+    with pytest.raises(ValueError, match="share their frames"):
+        build_and_write_all([MapRequest(jobs[0]), MapRequest(MapJob.of(seq, "lidar-fov", range(0, 2)))], seq,
+                            tmp_path / "bad", show_progress=False)
+    assert not (tmp_path / "bad").exists()

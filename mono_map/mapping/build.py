@@ -147,6 +147,31 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
     return integrator.insert_updates(upd), int(len(v))
 
 
+class FrameInputs:
+    """One frame's image_2 and predictions, read and predicted once for every map built from the frame
+    (the keep sweep of ``eval --table`` and the demo's two monocular maps share one prediction pass).
+    ``with_probs``: ids of the predictors whose bin probabilities some map needs (distribution mode)."""
+
+    def __init__(self, seq, i: int, with_probs: Iterable[int] = ()):
+        self.seq, self.i, self.with_probs = seq, i, set(with_probs)
+        self._image: np.ndarray | None = None
+        self._predictions: dict[int, object] = {}
+
+    def image(self) -> np.ndarray:
+        """H×W×3 uint8 RGB image_2 of the frame."""
+        if self._image is None:
+            self._image = self.seq.image(self.i)
+        return self._image
+
+    def prediction(self, predictor):
+        """``predictor``'s DepthPrediction of the frame (computed on the first call)."""
+        key = id(predictor)
+        if key not in self._predictions:
+            self._predictions[key] = run_predictor(predictor, self.seq, self.i, self.image(),
+                                                   with_probs=key in self.with_probs)
+        return self._predictions[key]
+
+
 @dataclass
 class Measurement:
     """One frame's input to the map (world = first cam0 frame, metres), with the camera images behind it."""
@@ -166,7 +191,7 @@ class Measurement:
 
 class MapBuilder:
     """Integrates frames of ``seq`` into a new OctoMap, one :meth:`step` per frame (see :func:`build_map`
-    for the arguments; they are checked by :func:`build_map`)."""
+    for the arguments; :func:`make_builder` checks them)."""
 
     def __init__(self, seq, source: str, keep: float, *, octomap: OctoMapConfig, stride: int, predictor,
                  depth_range: tuple[float, float], observers: Sequence[Callable], stats_every: int,
@@ -174,6 +199,7 @@ class MapBuilder:
         self.seq, self.source, self.keep, self.stride = seq, source, keep, stride
         self.predictor, self.depth_range, self.observers = predictor, depth_range, list(observers)
         self.stats_every, self.n_frames, self.dcfg = stats_every, n_frames, distribution
+        self.integrate = integrate
         self.dist_mode = source == "mono" and integrate == "distribution"
         self.integrator = MapIntegrator(octomap, method=method)
         self.edges = bin_edges(predictor) if self.dist_mode else None
@@ -183,14 +209,17 @@ class MapBuilder:
         self.last = {"leaf_count": 0, "memory_mb": 0.0, "memory_bytes": 0}
         self.t_start = time.perf_counter()
 
-    def step(self, i: int) -> None:
-        """Frame ``i``: predict → select → back-project (or read the scan) → integrate → observers."""
+    def step(self, i: int, inputs: FrameInputs | None = None) -> None:
+        """Frame ``i``: predict → select → back-project (or read the scan) → integrate → observers.
+        ``inputs``: the frame's image and predictions shared with other maps built in the same pass."""
         t_frame = time.perf_counter()
+        if inputs is None:
+            inputs = FrameInputs(self.seq, i, [id(self.predictor)] if self.dist_mode else ())
         T_world_cam2 = self.seq.T_world_cam2(i)
         if self.source == "mono":
-            m = self.mono_measurement(i, T_world_cam2)
+            m = self.mono_measurement(i, T_world_cam2, inputs)
         elif self.source == "depth-gt":
-            m = self.depth_gt_measurement(i, T_world_cam2)
+            m = self.depth_gt_measurement(i, T_world_cam2, inputs)
         else:
             m = self.lidar_measurement(i)
         if self.dist_mode:
@@ -203,10 +232,10 @@ class MapBuilder:
         if self.observers:
             self.notify(i, T_world_cam2, m, res, fstats)
 
-    def mono_measurement(self, i: int, T_world_cam2: np.ndarray) -> Measurement:
+    def mono_measurement(self, i: int, T_world_cam2: np.ndarray, inputs: FrameInputs) -> Measurement:
         """Predict image_2's depth distribution, keep the lowest-entropy pixels, back-project them."""
-        image = self.seq.image(i)
-        pred = run_predictor(self.predictor, self.seq, i, image, with_probs=self.dist_mode)
+        image = inputs.image()
+        pred = inputs.prediction(self.predictor)
         depth = np.asarray(pred.depth, dtype=np.float32)
         entropy = np.asarray(pred.entropy, dtype=np.float32)
         if depth.shape != image.shape[:2] or entropy.shape != image.shape[:2]:
@@ -228,9 +257,9 @@ class MapBuilder:
         return Measurement(pts, camera_origin(T_world_cam2), n_valid, float(mask.sum()) / n_valid,
                            float(entropy[mask].mean()), image, depth, entropy, mask, pred, valid)
 
-    def depth_gt_measurement(self, i: int, T_world_cam2: np.ndarray) -> Measurement:
+    def depth_gt_measurement(self, i: int, T_world_cam2: np.ndarray, inputs: FrameInputs) -> Measurement:
         """The synthetic ground-truth depth_2, every pixel within the bin range, back-projected."""
-        image = self.seq.image(i) if self.observers else None
+        image = inputs.image() if self.observers else None
         depth = self.seq.depth(i)
         if depth is None:
             raise MonoMapError(f"{self.seq.path / 'depth_2'}: no ground-truth depth for frame {i}; --source "
@@ -278,8 +307,9 @@ class MapBuilder:
         for obs in self.observers:
             obs(upd)
 
-    def result(self, frames: Sequence[int], integrate: str) -> BuildResult:
-        """The tree and the build's statistics."""
+    def result(self, frames: Sequence[int]) -> BuildResult:
+        """The tree and the build's statistics (the integrator is finished: no more steps)."""
+        integrate = self.integrate
         cfg, dcfg, dist = self.integrator.cfg, self.dcfg, self.dist_mode
         final = self.integrator.stats()
         wall = time.perf_counter() - self.t_start
@@ -304,6 +334,59 @@ class MapBuilder:
         return BuildResult(tree=tree, stats=stats, per_frame=self.per_frame, integrator=self.integrator)
 
 
+def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_frames: int,
+                 octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None, model: str | None = None,
+                 depth_range: tuple[float, float] | None = None, observers: Sequence[Callable] = (),
+                 stats_every: int = 100, method: str = "batched", integrate: str = "keep",
+                 distribution: DistributionConfig | None = None) -> MapBuilder:
+    """A checked :class:`MapBuilder` for ``n_frames`` frames (arguments as :func:`build_map`'s).
+    Raises MonoMapError on bad input."""
+    if source not in SOURCES:
+        raise MonoMapError(f"--source: unknown source {source!r} (choose from {', '.join(SOURCES)})")
+    cfg = octomap or OctoMapConfig()
+    stride = int(stride)
+    if stride < 1:
+        raise MonoMapError(f"--stride: must be a positive integer, got {stride}")
+    if integrate not in INTEGRATIONS:
+        raise MonoMapError(f"--integrate: unknown integration {integrate!r} (choose from {', '.join(INTEGRATIONS)})")
+    dist_mode = source == "mono" and integrate == "distribution"
+    dcfg = check_distribution_config(distribution or DistributionConfig())
+    if dist_mode and method != "batched":
+        raise MonoMapError("--integrate distribution: needs the batched integration method")
+    if source == "mono" and not dist_mode:
+        keep = check_keep(keep)
+    if source == "mono" and predictor is None:
+        predictor = load_predictor(model)
+    if depth_range is None:
+        bins = getattr(predictor, "bins", None) or DepthBins()
+        depth_range = (float(bins.min_depth), float(bins.max_depth))
+    return MapBuilder(seq, source, keep, octomap=cfg, stride=stride, predictor=predictor,
+                      depth_range=depth_range, observers=observers, stats_every=stats_every, method=method,
+                      integrate=integrate, distribution=dcfg, n_frames=n_frames)
+
+
+def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], show_progress: bool = True) -> None:
+    """Step every builder through ``frames`` in one pass: each frame's image is read and each predictor
+    runs once, whatever the number of maps built from them. Observers are closed at the end, also on
+    error. Take each map with ``builder.result(frames)`` afterwards (one octree in memory at a time)."""
+    with_probs = {id(b.predictor) for b in builders if b.dist_mode}
+    iterator = frames
+    if show_progress:
+        from mono_map.progress import progress
+
+        sources = sorted({b.source for b in builders})
+        desc = f"build {'+'.join(sources)}" + (f" ×{len(builders)}" if len(builders) > 1 else "")
+        iterator = progress(frames, total=len(frames), desc=desc, unit="frame")
+    try:
+        for i in iterator:
+            inputs = FrameInputs(seq, i, with_probs)
+            for b in builders:
+                b.step(i, inputs)
+    finally:
+        for b in builders:
+            _close(b.observers)
+
+
 def build_map(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, frames: Sequence[int] | None = None,
               octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None,
               model: str | None = None, depth_range: tuple[float, float] | None = None,
@@ -324,39 +407,38 @@ def build_map(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, frames: 
     Leaf count / memory are measured every ``stats_every`` frames (a tree traversal) and carried
     in between. Raises MonoMapError on bad input; nothing is written here.
     """
-    if source not in SOURCES:
-        raise MonoMapError(f"--source: unknown source {source!r} (choose from {', '.join(SOURCES)})")
-    cfg = octomap or OctoMapConfig()
-    stride = int(stride)
-    if stride < 1:
-        raise MonoMapError(f"--stride: must be a positive integer, got {stride}")
-    if integrate not in INTEGRATIONS:
-        raise MonoMapError(f"--integrate: unknown integration {integrate!r} (choose from {', '.join(INTEGRATIONS)})")
-    dist_mode = source == "mono" and integrate == "distribution"
-    dcfg = check_distribution_config(distribution or DistributionConfig())
-    if dist_mode and method != "batched":
-        raise MonoMapError("--integrate distribution: needs the batched integration method")
-    if source == "mono" and not dist_mode:
-        keep = check_keep(keep)
+    return build_maps(seq, [dict(source=source, keep=keep, octomap=octomap, stride=stride, predictor=predictor,
+                                 model=model, depth_range=depth_range, observers=observers,
+                                 stats_every=stats_every, method=method, integrate=integrate,
+                                 distribution=distribution)],
+                      frames=frames, show_progress=show_progress)[0]
+
+
+def make_builders(seq, maps: Sequence[dict], n_frames: int) -> list[MapBuilder]:
+    """Checked builders of the maps ``maps`` (each :func:`build_map`'s keyword arguments without
+    ``frames``/``show_progress``); mono maps that name the same model (None: the shipped one) and pass
+    no predictor share one loaded predictor, so :func:`run_builders` predicts each frame once."""
+    loaded: dict[str | None, object] = {}
+    builders = []
+    for kw in maps:
+        kw = dict(kw)
+        if kw.get("source", "mono") == "mono" and kw.get("predictor") is None:
+            model = kw.pop("model", None)
+            if model not in loaded:
+                loaded[model] = load_predictor(model)
+            kw["predictor"] = loaded[model]
+        builders.append(make_builder(seq, n_frames=n_frames, **kw))
+    return builders
+
+
+def build_maps(seq, maps: Sequence[dict], *, frames: Sequence[int] | None = None,
+               show_progress: bool = True) -> list[BuildResult]:
+    """Build several maps of the same ``frames`` in one pass (:func:`make_builders`, :func:`run_builders`):
+    a keep sweep costs one prediction pass. Every map is checked before any frame is read; nothing is
+    written here."""
     frames = list(range(len(seq))) if frames is None else list(frames)
     if not frames:
         raise MonoMapError("--frames: no frames selected")
-    if source == "mono" and predictor is None:
-        predictor = load_predictor(model)
-    if depth_range is None:
-        bins = getattr(predictor, "bins", None) or DepthBins()
-        depth_range = (float(bins.min_depth), float(bins.max_depth))
-    builder = MapBuilder(seq, source, keep, octomap=cfg, stride=stride, predictor=predictor,
-                         depth_range=depth_range, observers=observers, stats_every=stats_every, method=method,
-                         integrate=integrate, distribution=dcfg, n_frames=len(frames))
-    iterator = frames
-    if show_progress:
-        from mono_map.progress import progress
-
-        iterator = progress(frames, total=len(frames), desc=f"build {source}", unit="frame")
-    try:
-        for i in iterator:
-            builder.step(i)
-    finally:
-        _close(observers)
-    return builder.result(frames, integrate)
+    builders = make_builders(seq, maps, len(frames))
+    run_builders(seq, builders, frames, show_progress)
+    return [b.result(frames) for b in builders]

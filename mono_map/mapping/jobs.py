@@ -5,8 +5,10 @@ A :class:`MapJob` holds the data root, sequence and synthetic recipe marker, sou
 OctoMap settings, frames, stride, the checkpoint's sha256 digest and the inference precision. Its
 :meth:`MapJob.key` is stored in the map's ``.json`` and :func:`reusable` compares it before a written
 map is reused; :meth:`MapJob.stem` is the file name, for people. :func:`build_and_write` builds a map
-and publishes its ``.bt``, ``.json`` (and ``.ot``, ``.rrd``) together or not at all; :func:`check_memory`
-refuses, before building, a job whose first frame would not fit in memory.
+and publishes its ``.bt``, ``.json`` (and ``.ot``, ``.rrd``) together or not at all;
+:func:`build_and_write_all` does so for several maps of the same frames in one pass (one prediction per
+frame for all of them); :func:`check_memory` refuses, before building, a job whose first frame would not
+fit in memory.
 """
 
 from __future__ import annotations
@@ -292,58 +294,101 @@ def check_memory(seq, job: MapJob) -> None:
                            "use a coarser --res, a --max-range or a larger --stride")
 
 
+@dataclass
+class MapRequest:
+    """One map of a build pass and where it goes: the job, its file stem (default :meth:`MapJob.stem`),
+    extra observers, a rerun recording ``rrd`` made by ``logger(temporary rrd path)``, and ``write_ot``
+    (also the probabilistic ``.ot`` that calibration needs — .bt keeps max-likelihood states only)."""
+
+    job: MapJob
+    name: str | None = None
+    observers: tuple = ()
+    rrd: Path | None = None
+    logger: object = None
+    write_ot: bool = False
+
+
 def build_and_write(job: MapJob, seq, out_dir: Path, name: str | None = None, observers=(),
                     show_progress: bool = True, predictor=None, rrd: Path | None = None, logger=None,
                     write_ot: bool = False) -> tuple[Path, dict]:
-    """Build ``job``'s map from the open sequence ``seq`` and publish ``<name>.bt`` (default
-    :meth:`MapJob.stem`), ``<name>.json`` (with ``write_ot`` the probabilistic ``<name>.ot`` that
-    calibration needs — .bt keeps max-likelihood states only — and ``rrd``) together; (bt path, stats).
+    """Build ``job``'s map from the open sequence ``seq`` and publish ``<name>.bt``, ``<name>.json`` (and
+    ``.ot``, ``rrd``) together (see :class:`MapRequest` and :func:`build_and_write_all`); (bt path, stats)."""
+    return build_and_write_all([MapRequest(job, name, tuple(observers), rrd, logger, write_ot)], seq, out_dir,
+                               predictor=predictor, show_progress=show_progress)[0]
 
-    ``logger(rrd_path)`` makes the recording observer, given the temporary path the recording is
-    written to (renamed with the map only if the whole build succeeds). Nothing is published
-    if the build fails. predictor: None loads ``job.model`` (mono).
-    """
+
+def build_and_write_all(requests: list[MapRequest], seq, out_dir: Path, predictor=None,
+                        show_progress: bool = True) -> list[tuple[Path, dict]]:
+    """Build every requested map of the same frames in one pass over ``seq`` (each frame read and
+    predicted once: :func:`mono_map.mapping.build.build_maps`) and publish each map's files together;
+    if any build fails, nothing is published. predictor: None loads each mono job's model (once per
+    model). Returns (bt path, stats) per request."""
+    import contextlib
+
     from mono_map.errors import MonoMapError
-    from mono_map.io import atomic_outputs, quiet_native_output, write_json_atomic
-    from mono_map.mapping.build import build_map, load_predictor
+    from mono_map.io import atomic_outputs
+    from mono_map.mapping.build import make_builders, run_builders
+
+    frames = list(requests[0].job.frames)
+    if any(list(r.job.frames) != frames for r in requests):
+        raise ValueError("build_and_write_all: the maps of one pass must share their frames")
+    with contextlib.ExitStack() as stack:
+        maps, outputs = [], []
+        for r in requests:
+            bt = Path(out_dir) / f"{r.name or r.job.stem()}.bt"
+            extra = ([bt.with_suffix(".ot")] if r.write_ot else []) + ([Path(r.rrd)] if r.rrd is not None else [])
+            targets = [bt] + extra + [bt.with_suffix(".json")]
+            temps = stack.enter_context(atomic_outputs(*targets))
+            temp_of = dict(zip(targets, temps))
+            observers = list(r.observers)
+            if r.rrd is not None:
+                observers = [DiskSpaceGuard(Path(r.rrd))] + observers + [r.logger(temp_of[Path(r.rrd)])]
+            job = r.job
+            maps.append(dict(source=job.source, keep=job.keep, octomap=job.octomap, stride=job.stride,
+                             predictor=predictor if job.mono else None, model=job.model, observers=observers,
+                             integrate=job.integrate, distribution=job.distribution))
+            outputs.append((bt, temp_of))
+        builders = make_builders(seq, maps, len(frames))
+        try:
+            run_builders(seq, builders, frames, show_progress)
+        except RuntimeError as exc:  # rerun's flush timing out: its sink could not write the recording
+            rrds = [str(r.rrd) for r in requests if r.rrd is not None]
+            if not rrds:
+                raise
+            raise MonoMapError(f"{', '.join(rrds)}: rerun could not write the recording ({exc})") from None
+        written = []
+        for r, (bt, temp_of) in zip(requests, outputs):
+            builder = builders.pop(0)     # dropped once written (it holds its tree): one octree in memory at a time
+            written.append((bt, publish_map(r.job, builder.result(frames), bt, temp_of, r.write_ot)))
+            del builder
+    return written
+
+
+def publish_map(job: MapJob, result, bt: Path, temp_of: dict, write_ot: bool) -> dict:
+    """Write a built map's ``.ot`` (``write_ot``), ``.bt`` and ``.json`` to their temporary paths
+    (``temp_of[target]``, published by the caller); returns the stats stored in the ``.json``."""
+    from mono_map.io import quiet_native_output, write_json_atomic
     from mono_map.mapping.octree import write_tree_bt, write_tree_ot
 
     frames = list(job.frames)
-    if job.mono and predictor is None:
-        predictor = load_predictor(job.model)
-    bt = Path(out_dir) / f"{name or job.stem()}.bt"
-    extra = ([bt.with_suffix(".ot")] if write_ot else []) + ([Path(rrd)] if rrd is not None else [])
-    targets = [bt] + extra + [bt.with_suffix(".json")]
-    with atomic_outputs(*targets) as temps:
-        temp_of = dict(zip(targets, temps))
-        observers = list(observers)
-        if rrd is not None:
-            observers = [DiskSpaceGuard(Path(rrd))] + observers + [logger(temp_of[Path(rrd)])]
-        try:
-            result = build_map(seq, source=job.source, keep=job.keep, frames=frames, octomap=job.octomap,
-                               stride=job.stride, predictor=predictor, observers=observers,
-                               show_progress=show_progress, integrate=job.integrate, distribution=job.distribution)
-        except RuntimeError as exc:  # rerun's flush timing out: its sink could not write the recording
-            if rrd is None:
-                raise
-            raise MonoMapError(f"{rrd}: rerun could not write the recording ({exc})") from None
-        stats = dict(result.stats)
-        stats["model"] = (job.model or "shipped binary checkpoint") if job.mono else None
-        if frames != list(range(frames[0], frames[-1] + 1)):
-            stats["frame_indices"] = frames
-        if write_ot:  # before the .bt: writeBinary turns the tree max-likelihood in memory
-            ot = bt.with_suffix(".ot")
-            with _naming(ot), quiet_native_output():
-                write_tree_ot(result.tree, temp_of[ot])
-            stats["ot"] = str(ot)
-        with _naming(bt), quiet_native_output():  # OctoMap's own warning on a full disk: reported below
-            write_tree_bt(result.tree, temps[0])
-        stats["bt"] = str(bt)
-        stats["bt_bytes"] = temps[0].stat().st_size
-        with _naming(bt.with_suffix(".json")):
-            write_json_atomic(temps[-1], {"stats": stats, "job": job.key(), "job_hash": job.hash(),
+    stats = dict(result.stats)
+    stats["model"] = (job.model or "shipped binary checkpoint") if job.mono else None
+    if frames != list(range(frames[0], frames[-1] + 1)):
+        stats["frame_indices"] = frames
+    if write_ot:  # before the .bt: writeBinary turns the tree max-likelihood in memory
+        ot = bt.with_suffix(".ot")
+        with _naming(ot), quiet_native_output():
+            write_tree_ot(result.tree, temp_of[ot])
+        stats["ot"] = str(ot)
+    with _naming(bt), quiet_native_output():  # OctoMap's own warning on a full disk: reported below
+        write_tree_bt(result.tree, temp_of[bt])
+    stats["bt"] = str(bt)
+    stats["bt_bytes"] = temp_of[bt].stat().st_size
+    side = bt.with_suffix(".json")
+    with _naming(side):
+        write_json_atomic(temp_of[side], {"stats": stats, "job": job.key(), "job_hash": job.hash(),
                                           "per_frame": result.per_frame})
-    return bt, stats
+    return stats
 
 
 def _naming(target: Path):
