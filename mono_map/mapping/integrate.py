@@ -14,7 +14,6 @@ state changed each frame, for viewers.
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 
@@ -22,8 +21,8 @@ import numpy as np
 
 from mono_map.config import OctoMapConfig
 from mono_map.errors import MonoMapError
-from mono_map.mapping.octree import (apply_sensor_model, child_order_codes, key_to_coord, make_octree,
-                                     octree_from_cells, ot_header, sorted_unique)
+from mono_map.mapping.octree import (child_order_codes, key_to_coord, make_octree, octree_from_cells, ot_header,
+                                     sorted_unique, tree_from_stream)
 from mono_map.mapping.raycast import KeySets, compute_update
 
 
@@ -381,18 +380,15 @@ class MapIntegrator:
             if release:
                 self.mirror = m = None
             return octree_from_cells(keys, values, self.cfg)
-        import octomap
 
-        data = m.node_stream(kernel, self.cfg.resolution)
-        if release:
-            self.mirror = m = None
-        with tempfile.TemporaryDirectory(prefix="mono-map-ot-") as tmp:
-            # OctoMap reads a file as a stream; a bytes argument would be copied twice more in memory
-            path = os.path.join(tmp, "map.ot")
-            data.tofile(path)
-            del data
-            tree = octomap.OcTree.read(path.encode())
-        return apply_sensor_model(tree, self.cfg)
+        def stream():
+            data = self.mirror.node_stream(kernel, self.cfg.resolution)
+            if release:
+                self.mirror = None
+            return data
+
+        del m
+        return tree_from_stream(stream, self.cfg)
 
     def stats(self) -> dict:
         """Leaf count, node count and memory (OctoMap's ``memoryUsage``, MB = 2**20 bytes) of the map's octree,

@@ -200,15 +200,32 @@ def ot_header(n_nodes: int, resolution: float) -> bytes:
             f"#\nid OcTree\nsize {n_nodes}\nres {float(resolution)!r}\ndata\n").encode()
 
 
+def tree_from_stream(make_stream, cfg: OctoMapConfig):
+    """An ``octomap.OcTree`` read in one C++ call from the ``.ot`` stream ``make_stream()`` returns (bytes
+    or a uint8 array), with ``cfg``'s sensor model. The stream goes through a temporary file and is
+    dropped before OctoMap reads it (a bytes argument would be copied twice more in memory), so the
+    stream and the tree are never both alive at full size — as long as the caller keeps no reference."""
+    import os
+    import tempfile
+
+    import octomap
+
+    with tempfile.TemporaryDirectory(prefix="mono-map-ot-") as tmp:
+        path = os.path.join(tmp, "map.ot")
+        data = make_stream()
+        with open(path, "wb") as fh:
+            fh.write(memoryview(data))
+        del data
+        tree = octomap.OcTree.read(path.encode())
+    return apply_sensor_model(tree, cfg)
+
+
 def octree_from_cells(keys: np.ndarray, values: np.ndarray, cfg: OctoMapConfig):
     """An ``octomap.OcTree`` holding exactly these finest cells (float32 log-odds), with ``cfg``'s sensor
     model, read in one C++ call from :func:`ot_stream`."""
     if len(keys) == 0:
         return make_octree(cfg)
-    import octomap
-
-    data, _ = ot_stream(keys, values, cfg.resolution)
-    return apply_sensor_model(octomap.OcTree.read(data), cfg)
+    return tree_from_stream(lambda: ot_stream(keys, values, cfg.resolution)[0], cfg)
 
 
 def load_tree(path: str | Path):
