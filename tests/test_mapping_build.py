@@ -285,7 +285,7 @@ def test_cli_table_and_sweep(tiny_root, tmp_path, capsys):
     # the job key carries the integration: another --eps is another distribution map, the rest is reused
     dist = json.loads(next(out.glob("mono-dist_*.json")).read_text())["job"]
     assert dist["integration"]["mode"] == "distribution" and dist["keep"] is None
-    assert dist["integration"]["distribution"]["eps"] == 0.2
+    assert dist["integration"]["distribution"]["eps"] == 0.5
     assert cli_main(common + ["--eps", "0.3"]) == 0
     assert "rebuilding" not in capsys.readouterr().out
     assert len(list(out.glob("*.bt"))) == n_bt + 2 and len(list(out.glob("mono-dist-eps0.3_*.ot"))) == 1

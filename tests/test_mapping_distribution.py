@@ -44,7 +44,7 @@ def tree_cells(tree) -> dict:
 
 
 def integrate_point_masses(integ: MapIntegrator, depth: np.ndarray, T: np.ndarray, cfg: OctoMapConfig,
-                           quantum: float = 0.0):
+                           quantum: float = 0.0, snap_free: bool = False):
     mask = np.ones(depth.shape, bool)
     v, u = np.nonzero(mask)
     d = depth[v, u].astype(np.float64)
@@ -53,7 +53,8 @@ def integrate_point_masses(integ: MapIntegrator, depth: np.ndarray, T: np.ndarra
     fd = far_depth(probs, np.zeros(len(d)), edges, 1e-3)
     assert np.array_equal(fd, d)
     upd = distribution_update(camera_origin(T), pixels_to_world(depth, mask, K, T), fd, probs, None, edges,
-                              cfg.resolution, integ.hit, integ.miss, cfg.max_range, quantum=quantum)
+                              cfg.resolution, integ.hit, integ.miss, cfg.max_range, quantum=quantum,
+                              snap_free=snap_free)
     return integ.insert_updates(upd)
 
 
@@ -87,16 +88,36 @@ def test_point_masses_reproduce_keep_1_bit_for_bit(max_range, weights_path):
     assert keep.tree.getNumLeafNodes() == dist.tree.getNumLeafNodes()
 
 
-def test_point_masses_reproduce_keep_1_with_quantised_updates():
-    """--quantum rounds only fractional updates: exact hits and misses, hence point masses, are untouched."""
+@pytest.mark.parametrize("snap_free", [False, True])
+def test_point_masses_reproduce_keep_1_with_quantised_updates(snap_free):
+    """--quantum and --snap-free round only fractional updates: exact hits and misses, hence point masses,
+    are untouched."""
     cfg = OctoMapConfig(resolution=0.2)
     keep, dist = MapIntegrator(cfg), MapIntegrator(cfg)
     for i in range(3):
         depth, T = depth_frame(i), pose(i)
         keep.insert(pixels_to_world(depth, np.ones(depth.shape, bool), K, T), camera_origin(T))
-        integrate_point_masses(dist, depth, T, cfg, quantum=0.1)
+        integrate_point_masses(dist, depth, T, cfg, quantum=0.1, snap_free=snap_free)
     assert tree_cells(keep.tree) == tree_cells(dist.tree)
     assert keep.tree.memoryUsage() == dist.tree.memoryUsage()
+
+
+def test_snapped_free_updates_are_whole_misses_or_nothing():
+    dl = np.array([HIT, MISS, 0.37, -0.26, MISS / 2, MISS / 2 * 0.99, -0.9, 0.049, 0.0], np.float32)
+    s = quantise_updates(dl, HIT, MISS, 0.0, snap_free=True)
+    assert s.dtype == np.float32
+    assert s[0] == HIT and s[2] == np.float32(0.37) and s[7] == np.float32(0.049)   # positives untouched
+    assert s[1] == MISS and s[3] == MISS and s[4] == MISS and s[6] == MISS          # ≤ half a miss → a miss
+    assert s[5] == 0 and s[8] == 0                                                  # weaker → nothing
+    q = quantise_updates(dl, HIT, MISS, 0.1, snap_free=True)                        # with a quantum: positives
+    assert np.isclose(q[2], 0.4) and q[7] == 0 and set(q[q < 0].tolist()) == {float(MISS)}
+    # free space seen by snapped updates holds a keep map's values: k whole misses, so eight siblings prune
+    probs, edges = np.full(8, 0.1, np.float32), np.geomspace(4.0, 20.0, 9)
+    fd = far_depth(probs[None, :], np.array([0.2]), edges, 0.05)
+    far = ORIGIN + np.array([0.0, 0.0, fd[0]])
+    b = distribution_update(ORIGIN, far[None, :], fd, probs[None, :], np.array([0.2]), edges, 0.2, HIT, MISS,
+                            snap_free=True)
+    assert (b.dl[b.dl < 0] == MISS).all() and (b.dl < 0).any() and (b.dl != 0).all()
 
 
 def test_quantised_updates_lie_on_the_lattice():
@@ -388,7 +409,7 @@ def test_p_beyond_is_mass_beyond_every_cell_and_probs_are_conditional():
     np.put_along_axis(probs, idx[None], 1.0, axis=0)                 # conditional: each pixel sums to 1
     pb = np.full(depth.shape, 0.3, np.float32)
     pb[:, :8] = 0.9                                                  # nothing within range: skipped at eps 0.2
-    dcfg = DistributionConfig(eps=0.2, ray_step=1, min_update=0.0, temperature=1.0, quantum=0.0)
+    dcfg = DistributionConfig(eps=0.2, ray_step=1, min_update=0.0, temperature=1.0, quantum=0.0, snap_free=False)
     valid = np.ones(depth.shape, bool)
 
     got = MapIntegrator(cfg)

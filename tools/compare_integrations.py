@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -32,14 +31,10 @@ from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
 from mono_map.eval.map_metrics import calibration, compare_leaves, surface_precision  # noqa: E402
 from mono_map.frames import frames_tag, parse_frames  # noqa: E402
-from mono_map.mapping.build import bin_edges, build_map, distribution_frame, load_predictor  # noqa: E402
-from mono_map.mapping.build import run_predictor  # noqa: E402
+from mono_map.mapping.build import build_map, load_predictor, make_builders, run_builders  # noqa: E402
 from mono_map.mapping.jobs import MapJob  # noqa: E402
 from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
-from mono_map.mapping.integrate import MapIntegrator  # noqa: E402
 from mono_map.mapping.octree import load_tree, tree_leaves  # noqa: E402
-from mono_map.mapping.points import camera_origin, pixels_to_world  # noqa: E402
-from mono_map.mapping.select import select_pixels  # noqa: E402
 
 
 def reference_leaves(seq, source: str, frames, cfg, refs: Path | None):
@@ -64,6 +59,7 @@ def main(argv=None) -> int:
     p.add_argument("--temperature", default=str(d.temperature))
     p.add_argument("--bin-spread", default=str(d.bin_spread))
     p.add_argument("--quantum", default=str(d.quantum))
+    p.add_argument("--snap-free", default=str(int(d.snap_free)), help="0, 1 or 0,1 (free updates snapped to {miss, 0})")
     p.add_argument("--prob-hit", type=float, default=0.7)
     p.add_argument("--prob-miss", type=float, default=0.4)
     p.add_argument("--refs", default=None, help="directory with built lidar-fov / depth-gt maps of these frames")
@@ -82,52 +78,42 @@ def main(argv=None) -> int:
     ref = reference_leaves(seq, "lidar-fov", frames, OctoMapConfig(), refs)    # references: default sensor model
     surf = reference_leaves(seq, "depth-gt", frames, OctoMapConfig(), refs)
     predictor = load_predictor(None if args.model == "shipped" else args.model)
-    edges = bin_edges(predictor)
     grid = [DistributionConfig(eps=float(e), min_update=float(m), ray_step=int(s), temperature=float(t),
-                               bin_spread=float(b), quantum=float(q))
-            for e, m, s, t, b, q in itertools.product(args.eps.split(","), args.min_update.split(","),
-                                                      args.ray_step.split(","), args.temperature.split(","),
-                                                      args.bin_spread.split(","), args.quantum.split(","))]
-    cands = {}
+                               bin_spread=float(b), quantum=float(q), snap_free=bool(int(f)))
+            for e, m, s, t, b, q, f in itertools.product(args.eps.split(","), args.min_update.split(","),
+                                                         args.ray_step.split(","), args.temperature.split(","),
+                                                         args.bin_spread.split(","), args.quantum.split(","),
+                                                         args.snap_free.split(","))]
+    cands = {}   # name -> build_map keyword arguments; one builder each, all fed from one prediction per frame
     for k in sorted({float(k) for k in args.keeps.split(",")}, reverse=True):
-        cands["mono (keep 1.0)" if k == 1.0 else f"mono keep {k:g}"] = (k, MapIntegrator(cfg), [0.0])
+        cands["mono (keep 1.0)" if k == 1.0 else f"mono keep {k:g}"] = dict(keep=k)
     for g in grid:
         name = "mono, distribution" if len(grid) == 1 else (
             f"dist eps {g.eps:g} min {g.min_update:g} step {g.ray_step} T {g.temperature:g} spread {g.bin_spread:g}"
-            f" q {g.quantum:g}")
-        cands[name] = (g, MapIntegrator(cfg), [0.0])
-    K = seq.calib.K2
-    t_start = time.perf_counter()
-    for n, i in enumerate(frames, start=1):
-        pred = run_predictor(predictor, seq, i, seq.image(i), with_probs=True)
-        T = seq.T_world_cam2(i)
-        for c, integ, sec in cands.values():
-            t0 = time.perf_counter()
-            if isinstance(c, float):
-                mask = select_pixels(pred.depth, pred.entropy, c, 1.0, 80.0, p_beyond=pred.p_beyond)
-                integ.insert(pixels_to_world(pred.depth, mask, K, T), camera_origin(T))
-            else:
-                _, valid = select_pixels(pred.depth, pred.entropy, 1.0, 1.0, 80.0, return_valid=True)
-                distribution_frame(integ, pred, valid, K, T, edges, c, i)
-            sec[0] += time.perf_counter() - t0
-        if n % 50 == 0:
-            print(f"  {n}/{len(frames)} frames, {time.perf_counter() - t_start:.0f} s", flush=True)
+            f" q {g.quantum:g}" + (" snap" if g.snap_free else ""))
+        cands[name] = dict(integrate="distribution", distribution=g)
+    builders = make_builders(seq, [dict(kw, source="mono", octomap=cfg, predictor=predictor, stats_every=10**9)
+                                   for kw in cands.values()], len(frames))
+    run_builders(seq, builders, frames)
     rows, reliability = [], {}
-    for name, (c, integ, sec) in cands.items():
-        tree = integ.tree
+    for name, kw in cands.items():
+        b = builders.pop(0)
+        integration_s = sum(f["frame_s"] for f in b.per_frame) / len(frames)
+        tree = b.result(frames).tree
         leaves = tree_leaves(tree)
         m = compare_leaves(leaves, ref)
         s = surface_precision(leaves, surf)
         e = calibration(leaves, ref)
         reliability[name] = e
-        rows.append({"method": name, "source": "mono" if isinstance(c, float) else "mono-distribution",
-                     "keep": c if isinstance(c, float) else None,
-                     "settings": None if isinstance(c, float) else c.__dict__,
+        dist = kw.get("distribution")
+        rows.append({"method": name, "source": "mono" if dist is None else "mono-distribution",
+                     "keep": kw.get("keep"), "settings": None if dist is None else dist.__dict__,
                      "accuracy": m["accuracy"], "coverage": m["coverage"], "accuracy_covered": m["accuracy_covered"],
                      "precision": m["precision"], "recall": m["recall"], "f1": m["f1"],
                      "surface_precision": s["surface_precision"], "occupied_cells": s["occupied_cells"],
                      "ece": e["ece"], "memory_mb": tree.memoryUsage() / 2**20, "leaf_count": tree.getNumLeafNodes(),
-                     "integration_s_per_frame": sec[0] / len(frames)})
+                     "integration_s_per_frame": integration_s})
+        del b, tree
     lines = ["| map | acc. (%) | cov. (%) | acc. covered (%) | occ. P / R / F1 (%) | surface prec. (%) | occupied cells | "
              "ECE | memory (MB) | integration s/frame |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:

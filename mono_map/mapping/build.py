@@ -143,7 +143,7 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
     fd = far_depth(p, pb, edges, dcfg.eps)
     upd = distribution_update(camera_origin(T_world_cam2), pixel_points_to_world(u, v, fd, K, T_world_cam2), fd,
                               p, pb, edges, integrator.cfg.resolution, integrator.hit, integrator.miss,
-                              integrator.cfg.max_range, dcfg.min_update, dcfg.quantum)
+                              integrator.cfg.max_range, dcfg.min_update, dcfg.quantum, dcfg.snap_free)
     return integrator.insert_updates(upd), int(len(v))
 
 
@@ -367,8 +367,10 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
 
 def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], show_progress: bool = True) -> None:
     """Step every builder through ``frames`` in one pass: each frame's image is read and each predictor
-    runs once, whatever the number of maps built from them. Observers are closed at the end, also on
-    error. Take each map with ``builder.result(frames)`` afterwards (one octree in memory at a time)."""
+    runs once (before the builders step, so a builder's per-frame ``frame_s`` is its own work: selection,
+    back-projection, integration), whatever the number of maps built from them. Observers are closed at
+    the end, also on error. Take each map with ``builder.result(frames)`` afterwards (one octree in memory
+    at a time)."""
     with_probs = {id(b.predictor) for b in builders if b.dist_mode}
     iterator = frames
     if show_progress:
@@ -380,6 +382,8 @@ def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], sho
     try:
         for i in iterator:
             inputs = FrameInputs(seq, i, with_probs)
+            for p in {id(b.predictor): b.predictor for b in builders if b.source == "mono"}.values():
+                inputs.prediction(p)       # first: each map's frame_s is then its own work only
             for b in builders:
                 b.step(i, inputs)
     finally:

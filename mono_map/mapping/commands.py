@@ -46,7 +46,11 @@ def _add_integration_args(p: argparse.ArgumentParser) -> None:
                         f"pixel's local mean (default {d.bin_spread:g} = whole bins)")
     g.add_argument("--quantum", type=float, default=d.quantum,
                    help=f"distribution: round per-cell updates to multiples of this log-odds step, so free space "
-                        f"prunes (default {d.quantum:g} = off)")
+                        f"prunes (default {d.quantum:g}; 0 = off)")
+    g.add_argument("--snap-free", action=argparse.BooleanOptionalAction, default=d.snap_free,
+                   help="distribution: snap free-space updates to the sensor model's {miss, 0} (a whole miss where "
+                        "the expected update is at least half a miss), so free space prunes as in a keep map "
+                        f"(default {'on' if d.snap_free else 'off'})")
     g.add_argument("--ray-step", type=int, default=d.ray_step,
                    help=f"distribution: one ray every N-th pixel row and column (default {d.ray_step})")
 
@@ -57,7 +61,8 @@ def distribution_config(args):
 
     return check_distribution_config(DistributionConfig(eps=args.eps, temperature=args.temperature,
                                                         ray_step=args.ray_step, min_update=args.min_update,
-                                                        bin_spread=args.bin_spread, quantum=args.quantum))
+                                                        bin_spread=args.bin_spread, quantum=args.quantum,
+                                                        snap_free=args.snap_free))
 
 
 def register(subparsers) -> None:

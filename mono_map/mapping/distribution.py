@@ -52,15 +52,21 @@ class DistributionConfig:
     shifted so the modal bin's mass sits at the pixel's local mean depth (1 = whole bins, unshifted;
     see :func:`narrow_bins`);
     quantum: per-cell updates rounded to multiples of this log-odds step (exact hits and misses kept), so
-    cells take values from a lattice and free space prunes as in a hard map (0 = off; :func:`quantise_updates`).
+    cells take values from a lattice and free space prunes as in a hard map (0 = off; :func:`quantise_updates`);
+    snap_free: negative (free-space) updates snapped to the sensor model's own lattice {miss, 0} — a cell
+    gets a whole miss where the expected update is at least half a miss, else nothing — so cells only ever
+    seen free hold exactly the values of a hard map's free cells and prune as those do (positive updates
+    are rounded by ``quantum`` as before).
     """
 
-    eps: float = 0.2           # chosen on training town 06 (docs/results.md), never on 00
-    temperature: float = 0.5   # chosen with model v2 on training town 06 (docs/results.md), never on 00
+    # all chosen on training town 06 (docs/results.md), never on 00
+    eps: float = 0.5           # with snap_free (model v2): the map's memory below keep 0.8's; 0.2 with v1
+    temperature: float = 0.5   # model v2
     ray_step: int = 2          # ~ the network's input resolution (192×640 for 376×1241 images)
     min_update: float = 0.05
     bin_spread: float = 1.0
-    quantum: float = 0.2       # idem: 18 % less memory, surface precision 84 -> 94 % on 06
+    quantum: float = 0.2       # model v2: 18 % less memory, surface precision 84 -> 94 % on 06
+    snap_free: bool = True     # model v2, eps 0.5: memory 119 -> 61 MB (keep 0.8: 67 MB) on frames 0-39 of 06
 
 
 @dataclass
@@ -165,16 +171,20 @@ def narrow_bins(probs: np.ndarray, edges: np.ndarray, spread: float) -> tuple[np
     return out_probs, out_edges
 
 
-def quantise_updates(dl: np.ndarray, hit: float, miss: float, quantum: float) -> np.ndarray:
+def quantise_updates(dl: np.ndarray, hit: float, miss: float, quantum: float, snap_free: bool = False) -> np.ndarray:
     """float32 per-cell updates rounded to the nearest multiple of ``quantum`` (log-odds); values exactly
     equal to the float32 hit or miss update are kept, so point masses still give the hard map bit for bit.
-    Zeros mean "no update" (the caller drops them). ``quantum`` 0: unchanged."""
+    ``snap_free``: negative updates become exactly ``miss`` where dl ≤ miss / 2, else 0. Zeros mean
+    "no update" (the caller drops them). ``quantum`` 0 and no ``snap_free``: unchanged."""
     dl = np.asarray(dl, dtype=np.float32)
-    if quantum <= 0:
-        return dl
-    exact = (dl == np.float32(hit)) | (dl == np.float32(miss))
-    q = (np.round(dl.astype(np.float64) / quantum) * quantum).astype(np.float32)
-    return np.where(exact, dl, q)
+    if quantum > 0:
+        exact = (dl == np.float32(hit)) | (dl == np.float32(miss))
+        q = (np.round(dl.astype(np.float64) / quantum) * quantum).astype(np.float32)
+        dl = np.where(exact, dl, q)
+    if snap_free:
+        miss32 = np.float32(miss)
+        dl = np.where(dl < 0, np.where(dl <= miss32 / 2, miss32, np.float32(0)), dl).astype(np.float32)
+    return dl
 
 
 def cdf(probs: np.ndarray, edges: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -228,13 +238,14 @@ def far_depth(probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, eps: f
 
 def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: np.ndarray, probs: np.ndarray,
                         p_beyond: np.ndarray | None, edges: np.ndarray, resolution: float, hit: float, miss: float,
-                        max_range: float = -1.0, min_update: float = 0.0, quantum: float = 0.0) -> CellUpdates:
+                        max_range: float = -1.0, min_update: float = 0.0, quantum: float = 0.0,
+                        snap_free: bool = False) -> CellUpdates:
     """One frame's per-cell updates (see the module docstring).
 
     origin: (3,) camera centre (world, metres); far_points: (N, 3) each pixel's point at its far depth
     (world); far_depths: (N,) those depths (metres, as ``edges``); probs (N, K), p_beyond (N,) or None,
     edges (K+1,) or (N, K+1): the distributions; hit, miss: float32 log-odds of the sensor model;
-    min_update: weaker updates are dropped; quantum: updates rounded (:func:`quantise_updates`).
+    min_update: weaker updates are dropped; quantum, snap_free: updates rounded (:func:`quantise_updates`).
     """
     from mono_map.mapping.raycast_c import load_kernel, ray_weights_c
 
@@ -269,8 +280,8 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
     lin, dl = ray_weights_c(kernel, origin32, key_origin, ends, end_keys, inside, scale, probs, pb, edges,
                             hit, miss, res, box.lo, box.strides, TREE_MAX_VAL, box.size, min_update=min_update,
                             dense=box.size <= _DENSE_MAX_CELLS)
-    if quantum > 0:
-        dl = quantise_updates(dl, hit, miss, quantum)
+    if quantum > 0 or snap_free:
+        dl = quantise_updates(dl, hit, miss, quantum, snap_free)
         kept = dl != 0
         lin, dl = lin[kept], dl[kept]
     return CellUpdates(keys=box.keys(lin), dl=dl, n_rays=len(pts), lo=box.lo, hi=box.lo + box.dims - 1)

@@ -161,7 +161,8 @@ class MapJob:
                      + (f"-step{dcfg.ray_step}" if dcfg.ray_step != dd.ray_step else "")
                      + (f"-min{dcfg.min_update:g}" if dcfg.min_update != dd.min_update else "")
                      + (f"-spread{dcfg.bin_spread:g}" if dcfg.bin_spread != dd.bin_spread else "")
-                     + (f"-q{dcfg.quantum:g}" if dcfg.quantum != dd.quantum else "")]
+                     + (f"-q{dcfg.quantum:g}" if dcfg.quantum != dd.quantum else "")
+                     + (("-snap" if dcfg.snap_free else "-nosnap") if dcfg.snap_free != dd.snap_free else "")]
         else:
             parts = [self.source if not self.mono else f"mono-keep{self.keep:g}"]
         if self.mono and self.model:
