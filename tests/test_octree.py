@@ -67,3 +67,27 @@ def test_load_tree_refuses_what_is_not_a_tree(tmp_path):
     (tmp_path / "text.bt").write_text("hello\n")
     with pytest.raises(MonoMapError, match="not an OctoMap file"):
         load_tree(tmp_path / "text.bt")
+
+
+def test_leaves_read_from_the_stream_equal_octomaps_leaf_iterator(monkeypatch):
+    """tree_leaves parses the tree's .ot stream in C; the same leaves (intervals, states, log-odds) as
+    OctoMap's own leaf iterator, on a tree with pruned blocks at several depths, far keys and free cells."""
+    pytest.importorskip("octomap")
+    rng = np.random.default_rng(3)
+    cfg = OctoMapConfig()
+    parts, vals = [], []
+    for size, value in ((4, 2.0), (2, -1.5), (8, -2.0)):          # whole blocks: prune into one leaf each
+        base = TREE_MAX_VAL + rng.integers(-2000, 2000, 3) // size * size
+        parts.append(np.array([[x, y, z] for x in range(size) for y in range(size) for z in range(size)]) + base)
+        vals += [value] * size ** 3
+    parts.append(rng.integers(1, 2 * TREE_MAX_VAL - 1, (3000, 3)))  # scattered cells over the whole key range
+    vals += rng.normal(0, 1.5, 3000).tolist()
+    keys, first = np.unique(np.concatenate(parts), axis=0, return_index=True)
+    tree = octree_from_cells(keys, np.asarray(vals, np.float32)[first], cfg)
+    fast = tree_leaves(tree)
+    monkeypatch.setenv("MONO_MAP_NO_C", "1")
+    slow = tree_leaves(tree)
+    assert len(fast.start) == tree.getNumLeafNodes() < len(keys)     # some blocks were pruned
+    assert (fast.length > 1).sum() >= 3
+    for name in ("start", "length", "occupied", "value"):
+        assert np.array_equal(getattr(fast, name), getattr(slow, name)), name

@@ -50,7 +50,7 @@ class TableJob:
 @dataclass
 class Table:
     """What :func:`run_table` scored and wrote: the rows, their Markdown, where they went, and what the
-    pictures need (reliability per calibrated row, (label, tree) pairs for the top-down maps)."""
+    pictures need (reliability per calibrated row, (label, Leaves) pairs for the top-down maps)."""
 
     rows: list[dict]
     markdown: str
@@ -159,13 +159,15 @@ def run_table(job: TableJob) -> Table:
 
     ref_leaves = tree_leaves(load_tree(ref_bt))
     gt_leaves = tree_leaves(load_tree(gt_bt)) if gt_bt is not None else None
-    rows, trees, reliability = [], {}, {}
+    pictured = ["LiDAR-FOV", "mono (keep 1.0)", "mono keep 0.8"] + (["mono, distribution"] if extended else [])
+    rows, pics, reliability = [], {}, {}
     for label, source, keep, mj in entries:
         bt = mj.path(out_dir)
         stats = read_map_sidecar(bt)["stats"]
         tree = load_tree(bt)
-        trees[label] = tree
-        leaves = tree_leaves(tree)
+        leaves = ref_leaves if bt == ref_bt else tree_leaves(tree)
+        if label in pictured:
+            pics[label] = leaves
         m = compare_leaves(leaves, ref_leaves)
         row = {"method": label, "source": source, "keep": keep, "bt": str(bt),
                "accuracy": m["accuracy"], "coverage": m["coverage"], "accuracy_covered": m["accuracy_covered"],
@@ -192,12 +194,8 @@ def run_table(job: TableJob) -> Table:
                                                   "model": job.model, "model_digest": digest, "rows": rows,
                                                   "distribution": dcfg.__dict__ if extended else None,
                                                   "reliability": reliability})
-    pics = [("LiDAR-FOV", trees["LiDAR-FOV"]), ("mono (keep 1.0)", trees["mono (keep 1.0)"]),
-            ("mono keep 0.8", trees["mono keep 0.8"])]
-    if extended:
-        pics.append(("mono, distribution", trees["mono, distribution"]))
     return Table(rows=rows, markdown=md, out_dir=out_dir, stem=stem, reference=reference, reliability=reliability,
-                 topdown=pics, extended=extended)
+                 topdown=[(label, pics[label]) for label in pictured], extended=extended)
 
 
 def _pct(v) -> str:

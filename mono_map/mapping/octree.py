@@ -303,11 +303,51 @@ class Leaves:
 
 
 def tree_leaves(tree) -> Leaves:
-    """All leaves of an ``octomap.OcTree`` as Morton intervals (one pass of the leaf iterator);
-    states are maximum-likelihood: occupied iff log-odds ≥ the tree's occupancy threshold."""
+    """All leaves of an ``octomap.OcTree`` as Morton intervals; states are maximum-likelihood: occupied iff
+    log-odds ≥ the tree's occupancy threshold. The tree's .ot stream is read by the compiled kernel
+    (``mm_ot_leaves``; a 12 M-leaf tree in ~1 s instead of ~6 s with OctoMap's leaf iterator, which is the
+    fallback without a C compiler)."""
+    from mono_map.mapping.raycast_c import load_kernel
+
     res = float(tree.getResolution())
     thr = float(tree.getOccupancyThresLog())
     n = int(tree.getNumLeafNodes())
+    kernel = load_kernel()
+    if kernel is not None and n > 0:
+        keys, depth, value = stream_leaves(kernel, tree, n)
+        side = (1 << (TREE_DEPTH - depth)).astype(np.int64)
+    else:
+        keys, depth, value = iterator_leaves(tree, n, res)
+        side = (1 << (TREE_DEPTH - depth)).astype(np.int64)
+        keys -= keys % side[:, None]                                   # align (guards rounding)
+    start = morton_codes(keys)
+    order = np.argsort(start, kind="stable")
+    return Leaves(start=start[order], length=(side ** 3)[order], occupied=(value >= thr)[order], resolution=res,
+                  value=value[order])
+
+
+def stream_leaves(kernel, tree, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(min-corner keys, depths, float64 log-odds) of the ``n`` leaves of ``tree``, parsed from its .ot stream
+    (written to a temporary file: octomap-python writes files only)."""
+    import os
+    import tempfile
+
+    from mono_map.mapping.raycast_c import ot_leaves_c
+
+    with tempfile.TemporaryDirectory(prefix="mono-map-leaves-") as tmp:
+        path = os.path.join(tmp, "tree.ot")
+        if not tree.write(path.encode()):
+            raise MonoMapError("OctoMap could not write the tree's .ot stream to read its leaves")
+        data = np.fromfile(path, dtype=np.uint8)
+    at = bytes(data[:4096]).find(b"\ndata\n")
+    if at < 0:
+        raise MonoMapError("OctoMap wrote a .ot stream without its 'data' line")
+    keys, depth, value = ot_leaves_c(kernel, data[at + 6:], n)
+    return keys, depth, value.astype(np.float64)
+
+
+def iterator_leaves(tree, n: int, res: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(min-corner keys, depths, log-odds) of the ``n`` leaves of ``tree`` from OctoMap's leaf iterator."""
     xyz = np.empty((n, 3), dtype=np.float64)
     depth = np.empty(n, dtype=np.int64)
     value = np.empty(n, dtype=np.float64)
@@ -322,15 +362,9 @@ def tree_leaves(tree) -> Leaves:
         value[i] = it.getValue()
         i += 1
     xyz, depth, value = xyz[:i], depth[:i], value[:i]
-    side = (1 << (TREE_DEPTH - depth)).astype(np.int64)          # cells per side
-    size = side * res
+    size = (1 << (TREE_DEPTH - depth)).astype(np.int64) * res
     corner = xyz - size[:, None] / 2 + res / 2                     # centre of the min-corner cell
-    keys = np.round(corner / res - 0.5).astype(np.int64) + TREE_MAX_VAL
-    keys -= keys % side[:, None]                                   # align (guards rounding)
-    start = morton_codes(keys)
-    order = np.argsort(start, kind="stable")
-    return Leaves(start=start[order], length=(side ** 3)[order], occupied=(value >= thr)[order], resolution=res,
-                  value=value[order])
+    return np.round(corner / res - 0.5).astype(np.int64) + TREE_MAX_VAL, depth, value
 
 
 def occupied_keys(leaves: Leaves) -> np.ndarray:

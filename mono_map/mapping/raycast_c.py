@@ -481,6 +481,39 @@ int64_t mm_ot_nodes(const float *pool, const int64_t *slot, const int64_t *codes
     *leaves = c.leaves;
     return c.err ? -1 : c.pos;
 }
+
+/* Reads OctoMap's .ot node stream (pre-order; per node its float log-odds, then a byte whose bit i says
+   child i exists): every leaf's min-corner key (x, y, z), depth (0 = root) and log-odds. Returns the leaf
+   count; -1 if more than cap leaves, -2 if the stream ends inside a node, -3 if it is deeper than 16. */
+struct otp { const uint8_t *d; int64_t n, pos, cap, m; int64_t *keys; int8_t *depth; float *val; int err; };
+
+static void otp_node(struct otp *c, int level, int64_t kx, int64_t ky, int64_t kz)
+{
+    if (c->err) return;
+    if (c->pos + 5 > c->n) { c->err = -2; return; }
+    float v;
+    memcpy(&v, c->d + c->pos, 4);
+    uint8_t mask = c->d[c->pos + 4];
+    c->pos += 5;
+    if (mask == 0) {
+        if (c->m >= c->cap) { c->err = -1; return; }
+        c->keys[3 * c->m] = kx; c->keys[3 * c->m + 1] = ky; c->keys[3 * c->m + 2] = kz;
+        c->depth[c->m] = (int8_t) level; c->val[c->m] = v; c->m++;
+        return;
+    }
+    if (level >= 16) { c->err = -3; return; }
+    int64_t bit = (int64_t) 1 << (15 - level);
+    for (int i = 0; i < 8; ++i)
+        if (mask & (1 << i))
+            otp_node(c, level + 1, kx | ((i & 1) ? bit : 0), ky | ((i & 2) ? bit : 0), kz | ((i & 4) ? bit : 0));
+}
+
+int64_t mm_ot_leaves(const uint8_t *data, int64_t n, int64_t cap, int64_t *keys, int8_t *depth, float *val)
+{
+    struct otp c = {data, n, 0, cap, 0, keys, depth, val, 0};
+    if (n > 0) otp_node(&c, 0, 0, 0, 0);
+    return c.err ? c.err : c.m;
+}
 """
 
 _LIB = None
@@ -535,7 +568,8 @@ def load_kernel():
                            ("box_keys", [p, i64, p, p, p]),
                            ("mirror_alloc", [p, i64, p, p, p, i64, p]),
                            ("mirror_apply", [p, i64, p, f32, p, p, p, p, p, f32, f32, f32, p, p]),
-                           ("ot_nodes", [p, p, p, i64, p, i64, p, p, p, p, p, p])):
+                           ("ot_nodes", [p, p, p, i64, p, i64, p, p, p, p, p, p]),
+                           ("ot_leaves", [p, i64, i64, p, p, p])):
             cfn = getattr(lib, "mm_" + name)
             cfn.argtypes = args
             cfn.restype = None if name == "box_keys" else i64
@@ -876,3 +910,16 @@ def ot_counts_c(fn, pool: np.ndarray, block_codes: np.ndarray, cache: dict | Non
     n = fn.ot_nodes(pool.ctypes.data, slot.ctypes.data, codes.ctypes.data, len(slot), None, 0, leaves.ctypes.data,
                     *ptrs)
     return int(n), int(leaves[0])
+
+
+def ot_leaves_c(fn, data: np.ndarray, n_leaves: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``mm_ot_leaves``: (min-corner keys (N, 3) int64, depths (N,) int64, float32 log-odds (N,)) of the
+    leaves of a .ot node stream (uint8, header stripped) holding ``n_leaves`` leaves."""
+    d = np.ascontiguousarray(data, dtype=np.uint8)
+    keys = np.empty((n_leaves, 3), dtype=np.int64)
+    depth = np.empty(n_leaves, dtype=np.int8)
+    val = np.empty(n_leaves, dtype=np.float32)
+    m = fn.ot_leaves(d.ctypes.data, len(d), n_leaves, keys.ctypes.data, depth.ctypes.data, val.ctypes.data)
+    if m < 0 or m != n_leaves:
+        raise AssertionError(f"mm_ot_leaves: {m} (tree of {n_leaves} leaves)")   # OctoMap wrote the stream
+    return keys, depth.astype(np.int64), val

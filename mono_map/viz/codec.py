@@ -78,12 +78,13 @@ def group_by_block(idx: np.ndarray, block_cells: int) -> list[tuple[int, np.ndar
 
 
 def occupied_cells(tree) -> tuple[np.ndarray, float]:
-    """Occupied cells of an ``octomap.OcTree`` → (centres (N,3) metres at finest resolution, in Morton
-    order, resolution): pruned (merged) occupied nodes are expanded into their finest cells."""
-    from mono_map.mapping.octree import key_to_coord, occupied_keys, tree_leaves
+    """Occupied cells of an ``octomap.OcTree`` (or of its :class:`~mono_map.mapping.octree.Leaves`) →
+    (centres (N,3) metres at finest resolution, in Morton order, resolution): pruned (merged) occupied
+    nodes are expanded into their finest cells."""
+    from mono_map.mapping.octree import Leaves, key_to_coord, occupied_keys, tree_leaves
 
-    res = float(tree.getResolution())
-    return key_to_coord(occupied_keys(tree_leaves(tree)), res), res
+    leaves = tree if isinstance(tree, Leaves) else tree_leaves(tree)
+    return key_to_coord(occupied_keys(leaves), leaves.resolution), leaves.resolution
 
 
 def occupied_cells_from_bt(path) -> tuple[np.ndarray, float]:

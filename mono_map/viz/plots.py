@@ -70,10 +70,11 @@ def height_image(points: np.ndarray, extent: tuple[float, float, float, float], 
 
 def render_topdown(maps: list[tuple[str, object]], path: str | Path, res: float | None = None,
                    height_range: tuple[float, float] | None = None, dpi: int = 150) -> Path:
-    """Side-by-side top-down pictures of (title, octomap.OcTree) pairs, written atomically as PNG."""
-    clouds = [(title, occupied_cells(tree)[0]) for title, tree in maps]
+    """Side-by-side top-down pictures of (title, octomap.OcTree or its Leaves) pairs, written atomically as PNG."""
+    cells = [(title, occupied_cells(tree)) for title, tree in maps]
+    clouds = [(title, c) for title, (c, _) in cells]
     allp = np.concatenate([c for _, c in clouds if len(c)]) if any(len(c) for _, c in clouds) else np.zeros((1, 3))
-    cell = float(maps[0][1].getResolution())
+    cell = float(cells[0][1][1])
     # one picture pixel per screen pixel (max height over the cells it covers), never finer than a cell:
     # finer pixels leave empty rows/columns between cells (moire), coarser screen sampling drops cells
     x0, x1 = picture_extent(allp, cell)[:2]
