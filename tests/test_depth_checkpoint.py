@@ -77,3 +77,13 @@ def test_default_precision_reads_the_cpu_flags(monkeypatch):
     assert default_precision(info.format("")) == "fp32"
     monkeypatch.setenv("MONO_MAP_PRECISION", "fp32")
     assert default_precision(info.format("amx_bf16")) == "fp32"
+
+
+def test_every_shipped_checkpoint_is_found_by_name_and_loads():
+    from mono_map.depth.inference import DepthPredictor, default_checkpoint, shipped_names
+
+    names = shipped_names()
+    assert names[0] == "binary" and "v2/softmax" in names and "v1/ordinal" in names
+    for name in names:
+        p = DepthPredictor.load(name)
+        assert default_checkpoint(name).is_file() and p.head == name.split("/")[-1]

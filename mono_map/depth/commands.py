@@ -6,9 +6,6 @@ from pathlib import Path
 
 from mono_map.frames import FrameSelection, parse_frames
 
-# shipped checkpoints (mono_map/checkpoints/NAME.pt): the model-v2 mapping model and the v1 heads
-SHIPPED_HEADS = ("binary", "v1/binary", "v1/softmax", "v1/gaussian", "v1/ordinal")
-
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -29,7 +26,7 @@ def register(subparsers) -> None:
     p.add_argument("--data-root", default=None)
     p.add_argument("--frames", default=None,
                    help="with --seq: N (the first N), A:B[:S], I,J,... or 'all' (default all)")
-    p.add_argument("--model", default=None, help="checkpoint path or shipped name: binary (model v2, default) or v1/binary, v1/softmax, v1/gaussian, v1/ordinal")
+    p.add_argument("--model", default=None, help="checkpoint path or shipped name: binary (model v2, default), v2/<head> (e.g. v2/softmax) or v1/<head>")
     p.add_argument("--out", default="outputs/predict", help="output folder")
     p.add_argument("--npz", action="store_true", help="also save the K×h×w distributions (float16, model resolution)")
     p.add_argument("--space", choices=("log", "linear"), default="log", help="expectation space")
@@ -41,7 +38,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", default=None,
                    help="N (the first N), A:B[:S], I,J,... or 'all' (default 0:500:10, fewer in a shorter sequence)")
     p.add_argument("--model", action="append", default=None,
-                   help="checkpoint path or shipped name (binary, v1/binary, v1/softmax, v1/gaussian, v1/ordinal); repeat for several (default: all shipped)")
+                   help="checkpoint path or shipped name (binary, v2/<head>, v1/<head>); repeat for several (default: all shipped)")
     p.add_argument("--gt", choices=("lidar", "dense"), default="lidar", help="ground truth: projected LiDAR or dense depth_2")
     p.add_argument("--kitti-object", default=None, help="evaluate on a real KITTI object 'training' folder instead")
     p.add_argument("--trainset-town", default=None,
@@ -161,12 +158,12 @@ def predict_one(pred, name: str, img, out: Path, npz: bool) -> None:
 
 
 def _models(args) -> list[str]:
-    from mono_map.depth.inference import default_checkpoint
+    from mono_map.depth.inference import default_checkpoint, shipped_names
     from mono_map.errors import MonoMapError
 
     if args.model:
         return args.model
-    found = [h for h in SHIPPED_HEADS if default_checkpoint(h).is_file()]
+    found = shipped_names()
     if not found:
         raise MonoMapError(f"{default_checkpoint('binary').parent}: no shipped checkpoints; pass --model")
     return found
@@ -177,7 +174,7 @@ def run_eval_depth(args) -> int:
 
     from mono_map.eval.depth_evaluation import evaluate_model, markdown_report, object_frames
     from mono_map.viz.plots import plot_hypotheses, plot_sparsification
-    from mono_map.depth.inference import DepthPredictor
+    from mono_map.depth.inference import DepthPredictor, shipped_names
     from mono_map.errors import MonoMapError
     from mono_map.io import write_json_atomic, write_text_atomic
 
@@ -191,9 +188,10 @@ def run_eval_depth(args) -> int:
     prepare_output_dir(args.out)
     torch.set_num_threads(max(1, args.threads))
     predictors = {}
+    shipped = shipped_names()
     for m in _models(args):
         p = DepthPredictor.load(m, fast=args.fast)
-        key = m if m in SHIPPED_HEADS else p.training.get("name") or p.head   # the run's name (e.g. v2-binary-k32)
+        key = m if m in shipped else p.training.get("name") or p.head   # the run's name (e.g. v2-binary-k32)
         key = key if key not in predictors else f"{key} ({m})"
         predictors[key] = p
     if args.kitti_object:

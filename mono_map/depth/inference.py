@@ -51,8 +51,15 @@ def default_precision(cpuinfo: str | None = None) -> str:
 
 
 def default_checkpoint(head: str = "binary") -> Path:
-    """A shipped checkpoint by name: "binary" (model v2, the mapping model) or "v1/<head>" (v1 heads)."""
+    """A shipped checkpoint by name: "binary" (model v2, the mapping model), "v2/<head>" (the other heads of
+    the v2 comparison) or "v1/<head>" (v1 heads)."""
     return CHECKPOINT_DIR / f"{head}.pt"
+
+
+def shipped_names() -> list[str]:
+    """Names of the shipped checkpoints (:func:`default_checkpoint`): "binary", then v2/…, then v1/…."""
+    sub = [f"{d}/{p.stem}" for d in ("v2", "v1") for p in sorted((CHECKPOINT_DIR / d).glob("*.pt"))]
+    return (["binary"] if default_checkpoint("binary").is_file() else []) + sub
 
 
 def fit_size(h: int, w: int, max_h: int, max_w: int) -> tuple[int, int]:
