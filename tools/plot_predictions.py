@@ -1,0 +1,60 @@
+"""A picture of a model's predictions on frames of a sequence: image_2, inverse depth, entropy, p_beyond.
+
+    python tools/plot_predictions.py --seq 00 --frames 0,250 --out docs/images/predict_v2_seq00.png [--model M]
+
+One row per frame; inverse depth (1/m) and entropy (nats) share one colour scale across the rows;
+p_beyond is the probability that the pixel sees no surface within the bin range (white = sky).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mono_map.data.prepare import prepare_sequence  # noqa: E402
+from mono_map.depth.inference import DepthPredictor  # noqa: E402
+from mono_map.frames import parse_frames  # noqa: E402
+from mono_map.viz.plots import figure  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seq", default="00")
+    ap.add_argument("--data-root", default=None)
+    ap.add_argument("--frames", default="0,250")
+    ap.add_argument("--model", default=None, help="checkpoint path or shipped name (default: the shipped binary)")
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args(argv)
+    predictor = DepthPredictor.load(a.model)          # a bad checkpoint is refused before any data is read
+    selection = parse_frames(a.frames)
+    seq = prepare_sequence(a.data_root, a.seq, selection)
+    frames = selection.resolve(len(seq))
+    rows = []
+    for i in frames:
+        image = seq.image(i)
+        p = predictor.predict(image)
+        rows.append((i, image, 1.0 / p.depth, p.entropy, p.p_beyond))
+    inv_hi = max(float(r[2].max()) for r in rows)
+    ent_hi = max(float(r[3].max()) for r in rows)
+    with figure(a.out, 110, bbox_inches="tight") as plt:
+        fig, axes = plt.subplots(len(rows), 4, figsize=(22, 2.1 * len(rows) + 0.4), squeeze=False)
+        for ax_row, (i, image, inv, ent, pb) in zip(axes, rows):
+            panels = ((image, None, f"frame {i}: image_2"), (inv, ("magma", 0, inv_hi), "inverse depth (1/m)"),
+                      (ent, ("viridis", 0, ent_hi), "entropy (nats)"), (pb, ("gray", 0, 1), "p_beyond"))
+            for ax, (img, cmap, title) in zip(ax_row, panels):
+                if cmap is None:
+                    ax.imshow(img)
+                else:
+                    im = ax.imshow(img, cmap=cmap[0], vmin=cmap[1], vmax=cmap[2])
+                    fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01)
+                ax.set_title(title, fontsize=9)
+                ax.axis("off")
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
