@@ -26,7 +26,8 @@ def _data(n=4, h=64, w=128):
 
 
 def _cfg(tmp_path, steps=4, **train_kw):
-    t = TrainConfig(steps=steps, batch_size=2, crop=(32, 64), lr=1e-3, threads=1, checkpoint_every=2,
+    train_kw = {"lr": 1e-3, **train_kw}
+    t = TrainConfig(steps=steps, batch_size=2, crop=(32, 64), threads=1, checkpoint_every=2,
                     log_every=2, work_dir=str(tmp_path / "work"), output=str(tmp_path / "out.pt"), **train_kw)
     return RunConfig(name="tiny", model=dict(TINY), data=DataConfig(), train=t, source="test")
 
@@ -96,6 +97,40 @@ def test_train_checkpoint_and_resume(tmp_path):
     pred = DepthPredictor.load(tmp_path / "out.pt")
     p = pred.predict(np.zeros((50, 100, 3), np.uint8))
     assert p.depth.shape == (50, 100) and p.entropy.shape == (50, 100)
+
+
+def test_a_run_can_start_from_another_checkpoints_weights(tmp_path):
+    """train.init: the run starts from the checkpoint's weights (not a fresh draw) with step 0; another
+    network or a missing file is refused, naming train.init, before any step."""
+    from mono_map.depth.inference import save_checkpoint
+    from mono_map.depth.networks import DepthNet, named_config
+
+    def net(**over):
+        m = {**TINY, **over}
+        return DepthNet(named_config(m.pop("arch"), **m))
+
+    def weights(path):   # the parameters (batch-norm running statistics move with any step)
+        return torch.cat([v.detach().float().ravel() for v in load_checkpoint(path)[0].parameters()])
+
+    images, depths = _data()
+    torch.manual_seed(7)
+    save_checkpoint(tmp_path / "src.pt", net(), {"step": 123})
+    logs = []
+    meta = train(_cfg(tmp_path / "a", steps=1, lr=1e-12, init=str(tmp_path / "src.pt")), resume=False,
+                 data=(images, depths), log=logs.append)
+    assert meta["step"] == 1 and any("starting from the weights" in m for m in logs)
+    src = weights(tmp_path / "src.pt")
+    assert torch.allclose(weights(tmp_path / "a" / "out.pt"), src, atol=1e-6)
+    train(_cfg(tmp_path / "b", steps=1, lr=1e-12), resume=False, data=(images, depths), log=lambda m: None)
+    assert not torch.allclose(weights(tmp_path / "b" / "out.pt"), src, atol=1e-3)     # without init: a fresh draw
+    with pytest.raises(MonoMapError, match="train.init: .*not found"):
+        train(_cfg(tmp_path / "c", steps=1, init=str(tmp_path / "nope.pt")), resume=False, data=(images, depths),
+              log=lambda m: None)
+    save_checkpoint(tmp_path / "k32.pt", net(num_bins=32), {"step": 1})
+    with pytest.raises(MonoMapError, match="train.init: .*another network.*num_bins"):
+        train(_cfg(tmp_path / "d", steps=1, init=str(tmp_path / "k32.pt")), resume=False, data=(images, depths),
+              log=lambda m: None)
+    assert not (tmp_path / "d" / "out.pt").exists()
 
 
 def _ddp_worker(rank, world, port, tmp, q):

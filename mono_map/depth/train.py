@@ -61,6 +61,8 @@ class TrainConfig:
     channels_last: bool = False                      # NHWC memory format (2-10 % faster here; with bf16 much more)
     bf16: bool = False                               # bfloat16 autocast of the forward pass (2x faster with AMX)
     validate_every: int = 0                          # steps between validations (0 = never)
+    init: str = ""                                   # start from this checkpoint's weights (path or shipped name,
+                                                     # e.g. "v2/binary"; same network and bins); fresh optimizer
 
 
 @dataclass(frozen=True)
@@ -355,6 +357,23 @@ def init_distributed(rank: int, world: int, backend: str | None = None) -> None:
         tdist.init_process_group(backend, rank=rank, world_size=world)
 
 
+def init_weights(name: str, mcfg, device: str = "cpu") -> dict:
+    """The state dict of checkpoint ``name`` (a path or a shipped name such as "v2/binary") to start a run
+    from; MonoMapError naming ``train.init`` if it is missing, unreadable or another network or bins."""
+    from mono_map.depth.inference import default_checkpoint, load_checkpoint
+
+    path = Path(name).expanduser()
+    if not path.suffix and not path.exists():
+        path = default_checkpoint(name)
+    if not path.is_file():
+        raise MonoMapError(f"train.init: {name}: checkpoint not found")
+    model, _ = load_checkpoint(path, device)
+    if model.cfg.to_dict() != mcfg.to_dict():
+        diff = sorted(k for k, v in mcfg.to_dict().items() if model.cfg.to_dict().get(k) != v)
+        raise MonoMapError(f"train.init: {path}: another network than the config's (differs in {', '.join(diff)})")
+    return model.state_dict()
+
+
 # ------------------------------------------------------------------ training loop
 def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: int | None = None,
           device: str | None = None, data: tuple | None = None, log=None, validator=None) -> dict:
@@ -383,10 +402,14 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
     device = device or (f"cuda:{rank % torch.cuda.device_count()}" if torch.cuda.is_available() else "cpu")
     mcfg = cfg.model_config()
     model = DepthNet(mcfg).to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=t.lr)
     work = Path(t.work_dir).expanduser() / cfg.name
     last = work / "last.pt"
     start, wall_before, cpu_before = 0, 0.0, 0.0
+    if t.init and not (resume and last.is_file()):
+        model.load_state_dict(init_weights(t.init, mcfg, device))
+        if rank == 0:
+            log(f"{cfg.name}: starting from the weights of {t.init}")
+    opt = torch.optim.Adam(model.parameters(), lr=t.lr)
     if resume and last.is_file():
         m, payload = load_checkpoint(last, device)
         model.load_state_dict(m.state_dict())
