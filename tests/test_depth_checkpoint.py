@@ -84,6 +84,7 @@ def test_every_shipped_checkpoint_is_found_by_name_and_loads():
 
     names = shipped_names()
     assert names[0] == "binary" and "v2/softmax" in names and "v1/ordinal" in names
+    assert len({default_checkpoint(n).read_bytes() for n in names}) == len(names)   # each file once
     for name in names:
         p = DepthPredictor.load(name)
         assert default_checkpoint(name).is_file() and p.head == name.split("/")[-1]

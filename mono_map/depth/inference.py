@@ -57,9 +57,18 @@ def default_checkpoint(head: str = "binary") -> Path:
 
 
 def shipped_names() -> list[str]:
-    """Names of the shipped checkpoints (:func:`default_checkpoint`): "binary", then v2/…, then v1/…."""
+    """Names of the shipped checkpoints (:func:`default_checkpoint`): "binary", then v2/…, then v1/…; a file
+    identical to an earlier one (v2/binary while it is the mapping model) is listed once, by its first name."""
+    import hashlib
+
     sub = [f"{d}/{p.stem}" for d in ("v2", "v1") for p in sorted((CHECKPOINT_DIR / d).glob("*.pt"))]
-    return (["binary"] if default_checkpoint("binary").is_file() else []) + sub
+    names, seen = [], set()
+    for name in (["binary"] if default_checkpoint("binary").is_file() else []) + sub:
+        digest = hashlib.sha256(default_checkpoint(name).read_bytes()).hexdigest()
+        if digest not in seen:
+            seen.add(digest)
+            names.append(name)
+    return names
 
 
 def fit_size(h: int, w: int, max_h: int, max_w: int) -> tuple[int, int]:
