@@ -473,3 +473,21 @@ def test_probability_colouring_observers_get_updated_cells(tiny_root, integrate)
     build_map(seq, "mono", 1.0, frames=range(0, 1), stride=2, integrate=integrate, observers=[alone],
               predictor=NoisyGroundTruthPredictor(sigma=0.01, edge_sigma=0.0), show_progress=False)
     assert alone[0].updated_cells is None and alone[0].updated_probability is None
+
+
+@pytest.mark.parametrize("temperature", [0.5, 0.3, 2.0])
+def test_temperature_sharpens_keeps_the_mass_and_is_the_same_in_chunks(temperature):
+    from mono_map.mapping.distribution import apply_temperature
+
+    rng = np.random.default_rng(5)
+    p = (rng.dirichlet(np.full(16, 0.4), size=1003) * rng.uniform(0.2, 1.0, (1003, 1))).astype(np.float32)
+    p[7] = 0.0                                                            # a pixel with no mass stays empty
+    whole = np.asarray(p, np.float64) ** (1.0 / temperature)
+    s = whole.sum(axis=1, keepdims=True)
+    want = (whole * (np.asarray(p, np.float64).sum(axis=1, keepdims=True) / np.where(s > 0, s, 1.0))).astype(np.float32)
+    got = apply_temperature(p, temperature, rows=100)                     # 11 chunks, the last one short
+    assert got.dtype == np.float32 and np.array_equal(got, want)          # the same to the bit as in one piece
+    assert np.allclose(got.sum(axis=1), p.sum(axis=1), atol=1e-5) and not got[7].any()
+    peak_up = got.max(axis=1)[p.sum(axis=1) > 0] > p.max(axis=1)[p.sum(axis=1) > 0]
+    assert peak_up.all() if temperature < 1 else (~peak_up).all()        # T < 1 sharpens, T > 1 flattens
+    assert apply_temperature(p, 1.0) is p

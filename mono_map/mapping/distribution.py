@@ -126,14 +126,20 @@ def check_distribution(probs: np.ndarray, p_beyond: np.ndarray | None, edges: np
     return np.ascontiguousarray(probs, dtype=np.float32), pb, edges
 
 
-def apply_temperature(probs: np.ndarray, temperature: float) -> np.ndarray:
-    """p^(1/T) per pixel, rescaled to the pixel's original bin mass (T = 1: unchanged)."""
+def apply_temperature(probs: np.ndarray, temperature: float, rows: int = 4096) -> np.ndarray:
+    """p^(1/T) per pixel (row), rescaled to the pixel's original bin mass (T = 1: unchanged); float64 inside,
+    float32 out. Done ``rows`` pixels at a time: every row's arithmetic is the same as on the whole array (the
+    same result to the bit), with the float64 temporaries in cache (2.5× faster for a frame's 116 k rows)."""
     if temperature == 1.0:
         return probs
-    p = np.asarray(probs, dtype=np.float64)
-    q = p ** (1.0 / temperature)
-    s = q.sum(axis=1, keepdims=True)
-    return (q * (p.sum(axis=1, keepdims=True) / np.where(s > 0, s, 1.0))).astype(np.float32)
+    probs = np.asarray(probs)
+    out = np.empty(probs.shape, dtype=np.float32)
+    for a in range(0, len(probs), rows):
+        p = np.asarray(probs[a:a + rows], dtype=np.float64)
+        q = p ** (1.0 / temperature)
+        s = q.sum(axis=1, keepdims=True)
+        out[a:a + rows] = q * (p.sum(axis=1, keepdims=True) / np.where(s > 0, s, 1.0))
+    return out
 
 
 def narrow_bins(probs: np.ndarray, edges: np.ndarray, spread: float) -> tuple[np.ndarray, np.ndarray]:
