@@ -491,3 +491,16 @@ def test_temperature_sharpens_keeps_the_mass_and_is_the_same_in_chunks(temperatu
     peak_up = got.max(axis=1)[p.sum(axis=1) > 0] > p.max(axis=1)[p.sum(axis=1) > 0]
     assert peak_up.all() if temperature < 1 else (~peak_up).all()        # T < 1 sharpens, T > 1 flattens
     assert apply_temperature(p, 1.0) is p
+
+
+def test_unconditional_mass_is_the_two_step_formula_to_the_bit():
+    from mono_map.mapping.distribution import apply_temperature, unconditional_mass
+
+    rng = np.random.default_rng(6)
+    p = rng.dirichlet(np.full(12, 0.5), size=777).astype(np.float32)
+    pb = rng.uniform(0, 1, 777)
+    for t in (1.0, 0.5):
+        want = (np.asarray(apply_temperature(p, t), np.float64) * (1.0 - pb)[:, None]).astype(np.float32)
+        got = unconditional_mass(p, pb, t, rows=50)
+        assert got.dtype == np.float32 and np.array_equal(got, want)
+        assert np.allclose(got.sum(axis=1), 1.0 - pb, atol=1e-5)

@@ -23,9 +23,8 @@ import numpy as np
 from mono_map.config import OctoMapConfig
 from mono_map.depth.bins import DepthBins
 from mono_map.errors import MonoMapError
-from mono_map.mapping.distribution import (INTEGRATIONS, DistributionConfig, apply_temperature,
-                                           check_distribution_config, distribution_update, far_depth,
-                                           narrow_bins)
+from mono_map.mapping.distribution import (INTEGRATIONS, DistributionConfig, check_distribution_config,
+                                           distribution_update, far_depth, narrow_bins, unconditional_mass)
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.octree import key_to_coord
 from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
@@ -134,10 +133,9 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
     s = dcfg.ray_step
     sub = valid[::s, ::s]
     v, u = np.nonzero(sub)
-    p = apply_temperature(np.moveaxis(probs[:, ::s, ::s], 0, -1)[sub], dcfg.temperature)   # (N, K) rows
     v, u = v * s, u * s
     pb = np.zeros(len(v)) if pb_img is None else np.clip(np.asarray(pb_img, dtype=np.float64)[v, u], 0.0, 1.0)
-    p = (np.asarray(p, dtype=np.float64) * (1.0 - pb)[:, None]).astype(np.float32)   # unconditional bin mass
+    p = unconditional_mass(np.moveaxis(probs[:, ::s, ::s], 0, -1)[sub], pb, dcfg.temperature)   # (N, K) rows
     if dcfg.bin_spread < 1.0:
         p, edges = narrow_bins(p, edges, dcfg.bin_spread)
     fd = far_depth(p, pb, edges, dcfg.eps)

@@ -142,6 +142,19 @@ def apply_temperature(probs: np.ndarray, temperature: float, rows: int = 4096) -
     return out
 
 
+def unconditional_mass(probs: np.ndarray, p_beyond: np.ndarray, temperature: float, rows: int = 4096) -> np.ndarray:
+    """float32 (N, K) unconditional bin mass (1 − p_beyond) · p_T of conditional bin probabilities ``probs``
+    (N, K) at ``temperature`` (:func:`apply_temperature`, rounded to float32 first), ``p_beyond`` (N,) float64;
+    ``rows`` pixels at a time (the same bits as on the whole array, the temporaries in cache)."""
+    probs = np.asarray(probs)
+    pb = np.asarray(p_beyond, dtype=np.float64)
+    out = np.empty(probs.shape, dtype=np.float32)
+    for a in range(0, len(probs), rows):
+        t = np.asarray(apply_temperature(probs[a:a + rows], temperature, rows), dtype=np.float64)
+        out[a:a + rows] = t * (1.0 - pb[a:a + rows])[:, None]
+    return out
+
+
 def narrow_bins(probs: np.ndarray, edges: np.ndarray, spread: float) -> tuple[np.ndarray, np.ndarray]:
     """Sub-bin placement of the bins' mass: (probs (N, 2K-1), per-pixel edges (N, 2K)).
 
