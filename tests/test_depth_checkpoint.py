@@ -88,3 +88,34 @@ def test_every_shipped_checkpoint_is_found_by_name_and_loads():
     for name in names:
         p = DepthPredictor.load(name)
         assert default_checkpoint(name).is_file() and p.head == name.split("/")[-1]
+
+
+@pytest.mark.parametrize("fast", [True, False])
+@pytest.mark.parametrize("step", [2, 3])
+def test_probabilities_sampled_every_step_pixels_are_the_full_maps_there(ckpt, fast, step):
+    """``probs_step``: only the sampled pixels are interpolated (channels last), the same values to float
+    rounding as the full-resolution maps there; depth and the other maps unchanged."""
+    path, _ = ckpt
+    pred = DepthPredictor.load(path, fast=fast)
+    img = (np.random.default_rng(1).random((75, 250, 3)) * 255).astype(np.uint8)
+    full = pred.predict(img, with_probs=True)
+    grid = pred.predict(img, with_probs=True, probs_step=step)
+    assert full.probs_step == 1 and grid.probs_step == step
+    assert grid.probs.shape == (16, -(-75 // step), -(-250 // step))
+    assert np.moveaxis(grid.probs, 0, -1).flags.c_contiguous           # one pixel's bins side by side
+    np.testing.assert_allclose(grid.probs, full.probs[:, ::step, ::step], rtol=0, atol=1e-6)
+    assert np.array_equal(grid.depth, full.depth) and np.array_equal(grid.p_beyond, full.p_beyond)
+    with pytest.raises(MonoMapError, match="probs_step"):
+        pred.predict(img, with_probs=True, probs_step=0)
+
+
+def test_bilinear_taps_are_torch_interpolation():
+    from mono_map.depth.inference import bilinear_taps
+
+    src = torch.arange(7, dtype=torch.float32) ** 2
+    want = torch.nn.functional.interpolate(src.view(1, 1, 1, 7), size=(1, 19), mode="bilinear",
+                                           align_corners=False).view(-1)
+    i0, i1, w = bilinear_taps(7, 19, 1)
+    np.testing.assert_allclose(torch.lerp(src[i0], src[i1], w).numpy(), want.numpy(), rtol=1e-6)
+    i0, i1, w = bilinear_taps(7, 19, 4)
+    np.testing.assert_allclose(torch.lerp(src[i0], src[i1], w).numpy(), want[::4].numpy(), rtol=1e-6)

@@ -353,9 +353,9 @@ class CountingOracle(NoisyGroundTruthPredictor):
         super().__init__()
         self.calls = []
 
-    def predict_frame(self, seq, i, image=None, with_probs=False):
+    def predict_frame(self, seq, i, image=None, with_probs=False, probs_step=1):
         self.calls.append((int(i), bool(with_probs)))
-        return super().predict_frame(seq, i, image, with_probs=with_probs)
+        return super().predict_frame(seq, i, image, with_probs=with_probs, probs_step=probs_step)
 
 
 def test_maps_of_one_pass_equal_maps_built_alone_and_predict_once(tiny_root, tmp_path):

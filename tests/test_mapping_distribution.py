@@ -364,7 +364,7 @@ def test_heads_without_probabilities_are_one_clear_error(tiny_root):
     from mono_map.mapping.build import build_map
 
     class NoProbs:
-        def predict(self, image, with_probs=False):
+        def predict(self, image, with_probs=False, probs_step=1):
             h, w = image.shape[:2]
             return DepthPrediction(depth=np.full((h, w), 10.0, np.float32), entropy=np.ones((h, w), np.float32))
 
@@ -504,3 +504,121 @@ def test_unconditional_mass_is_the_two_step_formula_to_the_bit():
         got = unconditional_mass(p, pb, t, rows=50)
         assert got.dtype == np.float32 and np.array_equal(got, want)
         assert np.allclose(got.sum(axis=1), 1.0 - pb, atol=1e-5)
+
+
+def street_rays(n_frames: int = 2, seed: int = 11):
+    """Rays of street-like depth frames with broad random distributions around each pixel's depth (many rays
+    share a far cell, as in a real frame): per frame (origin, far points, far depths, probs, p_beyond, edges)."""
+    rng = np.random.default_rng(seed)
+    edges = np.geomspace(1.0, 80.0, 65)
+    out = []
+    for i in range(n_frames):
+        depth, T = depth_frame(i), pose(i)
+        d = depth.reshape(-1).astype(np.float64)
+        centre = np.searchsorted(edges, d) - 1
+        logits = -0.5 * ((np.arange(64)[None, :] - centre[:, None]) / rng.uniform(0.1, 3.0, (len(d), 1))) ** 2
+        probs = np.exp(logits) * rng.uniform(0.5, 1.0, logits.shape)
+        probs = (probs / probs.sum(axis=1, keepdims=True) * 0.97).astype(np.float32)
+        pb = np.full(len(d), 0.03)
+        fd = far_depth(probs, pb, edges, 0.3)
+        mask = np.ones(depth.shape, bool)
+        out.append((camera_origin(T), pixels_to_world(fd.reshape(depth.shape).astype(np.float32), mask, K, T), fd,
+                    probs, pb, edges))
+    return out
+
+
+@pytest.mark.parametrize("max_range", [-1.0, 14.0])
+def test_skipping_surely_free_cells_gives_the_same_snapped_updates(max_range, weights_path):
+    """With ``snap_free`` the kernel skips the cells where a ray's update surely snaps to a whole miss: the
+    snapped updates equal snapping the exact per-cell updates (all cells, all values)."""
+    from mono_map.mapping.distribution import snap_threshold
+
+    for origin, far, fd, probs, pb, edges in street_rays():
+        exact = distribution_update(origin, far, fd, probs, pb, edges, 0.2, HIT, MISS, max_range, min_update=0.05)
+        want = quantise_updates(exact.dl, HIT, MISS, 0.2, snap_free=True)
+        fast = distribution_update(origin, far, fd, probs, pb, edges, 0.2, HIT, MISS, max_range, min_update=0.05,
+                                   quantum=0.2, snap_free=True)
+        keys = exact.keys[want != 0]
+        a, b = np.lexsort(keys.T), np.lexsort(fast.keys.T)
+        assert len(keys) > 20_000 and (want == MISS).mean() > 0.5 and (want > 0).any()
+        assert np.array_equal(keys[a], fast.keys[b]) and np.array_equal(want[want != 0][a], fast.dl[b])
+    thr = np.float32(snap_threshold(float(HIT), float(MISS), 0.2, 0.05))
+    snapped = quantise_updates(np.array([thr, np.nextafter(thr, np.float32(0))]), HIT, MISS, 0.2, snap_free=True)
+    assert snapped[0] == MISS and snapped[1] == 0 and thr <= -0.05      # the largest value that snaps to a miss
+
+
+def test_compiled_ray_distributions_match_the_numpy_formulas(monkeypatch):
+    from mono_map.mapping.distribution import ray_distributions, unconditional_mass
+
+    rng = np.random.default_rng(8)
+    edges = np.geomspace(1.0, 80.0, 17)
+    p = (rng.dirichlet(np.full(16, 0.3), size=5000) * rng.uniform(0.3, 1.0, (5000, 1))).astype(np.float32)
+    p[3] = 0.0
+    pb = rng.uniform(0, 1, 5000)
+    for t in (1.0, 0.5, 0.7):
+        mass, fd = ray_distributions(p, pb, t, edges, 0.4)
+        want = unconditional_mass(p, pb, t)
+        if t == 1.0:
+            assert np.array_equal(mass, want)                     # no sums involved: to the bit
+        np.testing.assert_allclose(mass, want, rtol=2e-6, atol=1e-12)
+        np.testing.assert_allclose(fd, far_depth(want, pb, edges, 0.4), rtol=1e-5)
+        q = p.copy()
+        again, fd2 = ray_distributions(q, pb, t, edges, 0.4, overwrite=True)
+        assert np.array_equal(again, mass) and np.array_equal(fd2, fd) and np.shares_memory(again, q)
+    monkeypatch.setenv("MONO_MAP_NO_C", "1")
+    from mono_map.mapping import raycast_c
+
+    monkeypatch.setattr(raycast_c, "_TRIED", False)
+    monkeypatch.setattr(raycast_c, "_LIB", None)
+    mass, fd = ray_distributions(p, pb, 0.5, edges, 0.4)
+    assert np.array_equal(mass, unconditional_mass(p, pb, 0.5))
+
+
+def test_distribution_checks_agree_compiled_and_numpy(monkeypatch):
+    from mono_map.mapping import distribution, raycast_c
+
+    rng = np.random.default_rng(9)
+    p = rng.dirichlet(np.ones(8), size=300).astype(np.float32) * 0.9
+    pb = rng.uniform(0, 0.1, 300)
+    p[5, 2], p[9, 1], pb[4] = np.nan, -0.25, np.inf
+    p[11] *= 1.5
+    compiled = distribution.row_stats(p, pb)
+    monkeypatch.setattr(raycast_c, "load_kernel", lambda: None)
+    numpy_ = distribution.row_stats(p, pb)
+    assert compiled == pytest.approx(numpy_, rel=1e-9)
+    assert compiled["bad_p"] == 1 and compiled["neg_p"] == 1 and compiled["bad_b"] == 1 and compiled["n_over"] >= 1
+
+
+def test_oracle_probabilities_at_a_pixel_step_are_its_full_maps_there(tiny_root):
+    from mono_map.data.kitti import open_sequence
+    from mono_map.mapping.oracle import NoisyGroundTruthPredictor
+
+    seq, oracle = open_sequence(tiny_root, "tiny"), NoisyGroundTruthPredictor()
+    full = oracle.predict_frame(seq, 1, with_probs=True)
+    grid = oracle.predict_frame(seq, 1, with_probs=True, probs_step=2)
+    assert grid.probs_step == 2 and np.moveaxis(grid.probs, 0, -1).flags.c_contiguous
+    assert np.array_equal(grid.probs, full.probs[:, ::2, ::2]) and np.array_equal(grid.p_beyond, full.p_beyond)
+    assert np.array_equal(grid.depth, full.depth)
+
+
+def test_probabilities_at_a_step_the_rays_cannot_use_are_one_clear_error(tiny_root):
+    from mono_map.data.kitti import open_sequence
+    from mono_map.mapping.build import build_map
+    from mono_map.mapping.distribution import DistributionConfig
+    from mono_map.mapping.oracle import NoisyGroundTruthPredictor
+
+    class EveryThird(NoisyGroundTruthPredictor):
+        def predict_frame(self, seq, i, image=None, with_probs=False, probs_step=1):
+            return super().predict_frame(seq, i, image, with_probs=with_probs, probs_step=3)
+
+    seq = open_sequence(tiny_root, "tiny")
+    with pytest.raises(MonoMapError, match="every 3 pixels cannot serve rays every 2"):
+        build_map(seq, "mono", frames=range(0, 1), integrate="distribution", predictor=EveryThird(),
+                  distribution=DistributionConfig(ray_step=2), show_progress=False)
+    # rays every 6th pixel are served by probabilities every 3rd: the same map as from full-resolution ones
+    maps = []
+    for pred in (EveryThird(), NoisyGroundTruthPredictor()):
+        r = build_map(seq, "mono", frames=range(0, 2), integrate="distribution", predictor=pred,
+                      distribution=DistributionConfig(ray_step=6), show_progress=False)
+        maps.append(tree_cells(r.tree))
+    assert len(maps[0]) > 100 and maps[0] == maps[1]

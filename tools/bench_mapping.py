@@ -133,7 +133,8 @@ def bench_integrations(args) -> int:
     cfg = OctoMapConfig(resolution=args.res)
     edges = bin_edges(predictor)
     print(f"sequence {args.seq}, {desc}, model {args.model}, keep {args.keep} vs distribution {dcfg}")
-    preds = [(i, run_predictor(predictor, seq, i, seq.image(i), with_probs=True)) for i in frames]
+    preds = [(i, run_predictor(predictor, seq, i, seq.image(i), with_probs=True, probs_step=dcfg.ray_step))
+             for i in frames]
     K = seq.calib.K2
 
     def keep_maps():

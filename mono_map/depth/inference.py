@@ -28,9 +28,11 @@ CHECKPOINT_VERSION = 1
 class DepthPrediction:
     depth: np.ndarray                 # H×W float32, metres, expected depth at full input resolution
     entropy: np.ndarray               # H×W float32, nats (non-distribution heads: their uncertainty)
-    probs: np.ndarray | None = None   # K×H×W float32 (softmax over logits), only if asked
+    probs: np.ndarray | None = None   # K×H'×W' float32 (softmax over logits), only if asked, at the pixels
+    #                                   [::probs_step, ::probs_step] (H' = ceil(H / probs_step))
     argmax: np.ndarray | None = None  # H×W float32, metres, centre of the most likely bin
     p_beyond: np.ndarray | None = None  # H×W float32, probability of no surface within the bin range (sky)
+    probs_step: int = 1               # probs sample every probs_step-th pixel row and column
 
 
 def default_precision(cpuinfo: str | None = None) -> str:
@@ -48,6 +50,23 @@ def default_precision(cpuinfo: str | None = None) -> str:
             return "fp32"
     flags = {f for line in cpuinfo.splitlines() if line.startswith("flags") for f in line.split(":", 1)[-1].split()}
     return "bf16" if flags & {"amx_bf16", "avx512_bf16"} else "fp32"
+
+
+def check_probs_step(step) -> int:
+    """A valid ``probs_step`` (a positive integer) or MonoMapError."""
+    if int(step) != step or step < 1:
+        raise MonoMapError(f"probs_step: must be a positive integer, got {step}")
+    return int(step)
+
+
+def bilinear_taps(n_in: int, n_out: int, step: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bilinear up-sampling from n_in to n_out samples (``align_corners=False``, as ``F.interpolate``) evaluated at
+    outputs 0, step, 2·step, ...: (lower source index, upper source index, float32 weight of the upper)."""
+    scale = torch.tensor(n_in / n_out, dtype=torch.float32)
+    src = ((torch.arange(0, n_out, step, dtype=torch.float32) + 0.5) * scale - 0.5).clamp_min(0)
+    i0 = src.long()
+    i1 = torch.clamp(i0 + 1, max=n_in - 1)
+    return i0, i1, src - i0
 
 
 def default_checkpoint(head: str = "binary") -> Path:
@@ -206,6 +225,22 @@ class DepthPredictor:
         t = t[..., :fh, :fw]
         return F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False) if (fh, fw) != (h, w) else t
 
+    def to_grid(self, t: torch.Tensor, geom: tuple, step: int) -> torch.Tensor:
+        """(B,C,h',w') maps at network resolution -> (B, ceil(h/step), ceil(w/step), C), channels last and
+        contiguous: :meth:`to_image`'s bilinear up-sampling evaluated only at the image pixels [::step, ::step]
+        (the same interpolation; float32 rounding may differ in the last bit)."""
+        (H, W), (fh, fw), (h, w), low = geom
+        t = t.contiguous(memory_format=torch.channels_last)
+        if low:
+            t = F.interpolate(t, size=(H, W), mode="bilinear", align_corners=False)
+        t = t[..., :fh, :fw].permute(0, 2, 3, 1)              # (B, fh, fw, C), a view of channels-last memory
+        if (fh, fw) == (h, w):
+            return t[:, ::step, ::step].contiguous()
+        r0, r1, wr = bilinear_taps(fh, h, step)
+        c0, c1, wc = bilinear_taps(fw, w, step)
+        rows = torch.lerp(t[:, r0], t[:, r1], wr[None, :, None, None])
+        return torch.lerp(rows[:, :, c0], rows[:, :, c1], wc[None, None, :, None])
+
     def decode(self, outputs: torch.Tensor, space: str | None = None, with_probs: bool = False) -> dict:
         """Raw head outputs -> depth, entropy, argmax, p_beyond, probs (see :func:`heads.decode`)."""
         return decode(self.model.head, outputs, self.bins, space or self.space, with_probs=with_probs,
@@ -219,25 +254,33 @@ class DepthPredictor:
         return out, (tuple(x.shape[-2:]), (fh, fw), (h, w), low)
 
     @torch.inference_mode()
-    def predict_batch(self, images: list[np.ndarray], with_probs: bool = False) -> list[DepthPrediction]:
+    def predict_batch(self, images: list[np.ndarray], with_probs: bool = False,
+                      probs_step: int = 1) -> list[DepthPrediction]:
+        """Predictions of same-size RGB images; ``with_probs``: also the bin probabilities, at every
+        ``probs_step``-th pixel row and column (> 1: only those pixels are interpolated, ~step² less work)."""
         if not images:
             return []
+        step = check_probs_step(probs_step)
         out, geom = self.raw_outputs(images)
         res = self.decode(out, with_probs=with_probs)
         stats = self.to_image(torch.stack([res["depth"], res["entropy"], res["argmax"], res["p_beyond"]], 1), geom)
         depth = stats[:, 0].clamp(self.bins.min_depth, self.bins.max_depth)
-        probs = self.to_image(res["probs"], geom) if (with_probs and res["probs"] is not None) else None
+        probs = None
+        if with_probs and res["probs"] is not None:
+            # step 1: the K×H×W maps as always; else channels-last samples, handed out as K-first views
+            probs = (self.to_image(res["probs"], geom) if step == 1 else
+                     self.to_grid(res["probs"].float(), geom, step).permute(0, 3, 1, 2))
         preds = []
         for b in range(len(images)):
             preds.append(DepthPrediction(
                 depth=depth[b].cpu().numpy().astype(np.float32), entropy=stats[b, 1].cpu().numpy().astype(np.float32),
-                probs=None if probs is None else probs[b].cpu().numpy().astype(np.float32),
+                probs=None if probs is None else np.asarray(probs[b].cpu().numpy(), dtype=np.float32),
                 argmax=stats[b, 2].cpu().numpy().astype(np.float32),
-                p_beyond=stats[b, 3].clamp(0, 1).cpu().numpy().astype(np.float32)))
+                p_beyond=stats[b, 3].clamp(0, 1).cpu().numpy().astype(np.float32), probs_step=step))
         return preds
 
-    def predict(self, image: np.ndarray, with_probs: bool = False) -> DepthPrediction:
-        return self.predict_batch([image], with_probs=with_probs)[0]
+    def predict(self, image: np.ndarray, with_probs: bool = False, probs_step: int = 1) -> DepthPrediction:
+        return self.predict_batch([image], with_probs=with_probs, probs_step=probs_step)[0]
 
 
 def get_dropout(model: DepthNet) -> bool:

@@ -14,9 +14,10 @@ pixel's whole depth distribution sets the updates along its ray instead
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -24,7 +25,8 @@ from mono_map.config import OctoMapConfig
 from mono_map.depth.bins import DepthBins
 from mono_map.errors import MonoMapError
 from mono_map.mapping.distribution import (INTEGRATIONS, DistributionConfig, check_distribution_config,
-                                           distribution_update, far_depth, narrow_bins, unconditional_mass)
+                                           distribution_update, far_depth, narrow_bins, ray_distributions,
+                                           unconditional_mass)
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.octree import key_to_coord
 from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
@@ -98,10 +100,11 @@ def load_predictor(model: str | None = None):
     return DepthPredictor.load(model, fast=True, precision=default_precision())
 
 
-def run_predictor(predictor, seq, i: int, image: np.ndarray, with_probs: bool = False):
+def run_predictor(predictor, seq, i: int, image: np.ndarray, with_probs: bool = False, probs_step: int = 1):
     """Predictors with ``predict_frame(seq, i, image)`` (e.g. the ground-truth oracle) get the frame;
-    others the image (``DepthPredictor.predict``). with_probs: also the K×H×W bin probabilities."""
-    kw = {"with_probs": True} if with_probs else {}
+    others the image (``DepthPredictor.predict``). with_probs: also the bin probabilities, at every
+    ``probs_step``-th pixel row and column (K×H×W for step 1)."""
+    kw = {"with_probs": True, "probs_step": probs_step} if with_probs else {}
     if hasattr(predictor, "predict_frame"):
         return predictor.predict_frame(seq, i, image, **kw)
     return predictor.predict(image, **kw)
@@ -124,21 +127,26 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
         raise MonoMapError(f"frame {frame}: the predictor gave no bin probabilities (--integrate distribution "
                            f"needs a distribution head: binary, softmax, ordinal, gaussian or a dropout variant)")
     probs = np.asarray(pred.probs)
-    if probs.ndim != 3 or probs.shape[1:] != valid.shape or probs.shape[0] != len(edges) - 1:
-        raise MonoMapError(f"frame {frame}: bin probabilities are {probs.shape}, expected "
-                           f"({len(edges) - 1}, {valid.shape[0]}, {valid.shape[1]})")
+    s, ps = dcfg.ray_step, getattr(pred, "probs_step", 1)
+    if s % ps:
+        raise MonoMapError(f"frame {frame}: bin probabilities every {ps} pixels cannot serve rays every {s}")
+    h, w = -(-valid.shape[0] // ps), -(-valid.shape[1] // ps)
+    if probs.ndim != 3 or probs.shape[1:] != (h, w) or probs.shape[0] != len(edges) - 1:
+        raise MonoMapError(f"frame {frame}: bin probabilities are {probs.shape}, expected ({len(edges) - 1}, {h}, {w})")
     pb_img = getattr(pred, "p_beyond", None)
     if pb_img is not None:
         valid = valid & ~(np.asarray(pb_img) > 1.0 - dcfg.eps)
-    s = dcfg.ray_step
     sub = valid[::s, ::s]
     v, u = np.nonzero(sub)
     v, u = v * s, u * s
     pb = np.zeros(len(v)) if pb_img is None else np.clip(np.asarray(pb_img, dtype=np.float64)[v, u], 0.0, 1.0)
-    p = unconditional_mass(np.moveaxis(probs[:, ::s, ::s], 0, -1)[sub], pb, dcfg.temperature)   # (N, K) rows
+    grid = probs[:, ::s // ps, ::s // ps]          # the rays' pixels; a (H', W', K) array's view when ps == s
+    rows = np.moveaxis(grid, 0, -1)[sub]           # (N, K)
     if dcfg.bin_spread < 1.0:
-        p, edges = narrow_bins(p, edges, dcfg.bin_spread)
-    fd = far_depth(p, pb, edges, dcfg.eps)
+        p, edges = narrow_bins(unconditional_mass(rows, pb, dcfg.temperature), edges, dcfg.bin_spread)
+        fd = far_depth(p, pb, edges, dcfg.eps)
+    else:
+        p, fd = ray_distributions(rows, pb, dcfg.temperature, edges, dcfg.eps, overwrite=True)
     upd = distribution_update(camera_origin(T_world_cam2), pixel_points_to_world(u, v, fd, K, T_world_cam2), fd,
                               p, pb, edges, integrator.cfg.resolution, integrator.hit, integrator.miss,
                               integrator.cfg.max_range, dcfg.min_update, dcfg.quantum, dcfg.snap_free)
@@ -148,10 +156,11 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
 class FrameInputs:
     """One frame's image_2 and predictions, read and predicted once for every map built from the frame
     (the keep sweep of ``eval --table`` and the demo's two monocular maps share one prediction pass).
-    ``with_probs``: ids of the predictors whose bin probabilities some map needs (distribution mode)."""
+    ``probs_steps``: predictor id → the pixel step at which some map needs its bin probabilities
+    (distribution mode: the rays' ``ray_step``)."""
 
-    def __init__(self, seq, i: int, with_probs: Iterable[int] = ()):
-        self.seq, self.i, self.with_probs = seq, i, set(with_probs)
+    def __init__(self, seq, i: int, probs_steps: Mapping[int, int] | None = None):
+        self.seq, self.i, self.probs_steps = seq, i, dict(probs_steps or {})
         self._image: np.ndarray | None = None
         self._predictions: dict[int, object] = {}
 
@@ -166,7 +175,8 @@ class FrameInputs:
         key = id(predictor)
         if key not in self._predictions:
             self._predictions[key] = run_predictor(predictor, self.seq, self.i, self.image(),
-                                                   with_probs=key in self.with_probs)
+                                                   with_probs=key in self.probs_steps,
+                                                   probs_step=self.probs_steps.get(key, 1))
         return self._predictions[key]
 
 
@@ -212,7 +222,7 @@ class MapBuilder:
         ``inputs``: the frame's image and predictions shared with other maps built in the same pass."""
         t_frame = time.perf_counter()
         if inputs is None:
-            inputs = FrameInputs(self.seq, i, [id(self.predictor)] if self.dist_mode else ())
+            inputs = FrameInputs(self.seq, i, probs_steps([self]))
         T_world_cam2 = self.seq.T_world_cam2(i)
         if self.source == "mono":
             m = self.mono_measurement(i, T_world_cam2, inputs)
@@ -363,13 +373,24 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
                       integrate=integrate, distribution=dcfg, n_frames=n_frames)
 
 
+def probs_steps(builders: Sequence[MapBuilder]) -> dict[int, int]:
+    """Predictor id → the pixel step at which the distribution-mode builders need its bin probabilities
+    (the greatest common divisor of their ray steps, so one prediction serves them all)."""
+    steps: dict[int, int] = {}
+    for b in builders:
+        if b.dist_mode:
+            k = id(b.predictor)
+            steps[k] = math.gcd(steps.get(k, 0), int(b.dcfg.ray_step))
+    return steps
+
+
 def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], show_progress: bool = True) -> None:
     """Step every builder through ``frames`` in one pass: each frame's image is read and each predictor
     runs once (before the builders step, so a builder's per-frame ``frame_s`` is its own work: selection,
     back-projection, integration), whatever the number of maps built from them. Observers are closed at
     the end, also on error. Take each map with ``builder.result(frames)`` afterwards (one octree in memory
     at a time)."""
-    with_probs = {id(b.predictor) for b in builders if b.dist_mode}
+    steps = probs_steps(builders)
     iterator = frames
     if show_progress:
         from mono_map.progress import progress
@@ -379,7 +400,7 @@ def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], sho
         iterator = progress(frames, total=len(frames), desc=desc, unit="frame")
     try:
         for i in iterator:
-            inputs = FrameInputs(seq, i, with_probs)
+            inputs = FrameInputs(seq, i, steps)
             for p in {id(b.predictor): b.predictor for b in builders if b.source == "mono"}.values():
                 inputs.prediction(p)       # first: each map's frame_s is then its own work only
             for b in builders:

@@ -26,6 +26,7 @@ updates, so the map equals the ``--keep 1.0`` map bit for bit (tested).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -113,17 +114,35 @@ def check_distribution(probs: np.ndarray, p_beyond: np.ndarray | None, edges: np
         raise MonoMapError(f"{what}: bin edges must be ({k + 1},) or ({n}, {k + 1}), got {edges.shape}")
     if not np.isfinite(edges).all() or (edges < 0).any() or (np.diff(edges, axis=-1) < 0).any():
         raise MonoMapError(f"{what}: bin edges must be finite, non-negative and non-decreasing (metres)")
-    for name, a in (("probabilities", probs), ("p_beyond", pb)):
-        bad = ~np.isfinite(a)
-        if bad.any():
-            raise MonoMapError(f"{what}: {int(bad.sum())} {name} are NaN or infinite")
-        if (a < 0).any():
-            raise MonoMapError(f"{what}: {int((a < 0).sum())} {name} are negative (min {float(a.min()):.3g})")
-    total = probs.sum(axis=1, dtype=np.float64) + pb
-    if n and total.max() > 1 + _SUM_TOL:
-        raise MonoMapError(f"{what}: {int((total > 1 + _SUM_TOL).sum())} pixels have probabilities summing "
-                           f"above 1 (max {float(total.max()):.4f}); expected bin probabilities + p_beyond <= 1")
-    return np.ascontiguousarray(probs, dtype=np.float32), pb, edges
+    probs = np.ascontiguousarray(probs, dtype=np.float32)
+    st = row_stats(probs, pb)
+    for name, bad, neg, low in (("probabilities", st["bad_p"], st["neg_p"], st["min_p"]),
+                                ("p_beyond", st["bad_b"], st["neg_b"], st["min_b"])):
+        if bad:
+            raise MonoMapError(f"{what}: {int(bad)} {name} are NaN or infinite")
+        if neg:
+            raise MonoMapError(f"{what}: {int(neg)} {name} are negative (min {low:.3g})")
+    if n and st["max_total"] > 1 + _SUM_TOL:
+        raise MonoMapError(f"{what}: {st['n_over']} pixels have probabilities summing above 1 (max "
+                           f"{st['max_total']:.4f}); expected bin probabilities + p_beyond <= 1")
+    return probs, pb, edges
+
+
+def row_stats(probs: np.ndarray, pb: np.ndarray) -> dict:
+    """Counts of non-finite and negative values, minima, the largest row total and the rows above 1 + tol
+    (compiled: one pass; numpy otherwise)."""
+    from mono_map.mapping.raycast_c import check_rows_c, load_kernel
+
+    kernel = load_kernel()
+    if kernel is not None:
+        return check_rows_c(kernel, probs, pb, 1 + _SUM_TOL)
+    fin_p, fin_b = np.isfinite(probs), np.isfinite(pb)
+    total = np.where(fin_p, probs, 0).sum(axis=1, dtype=np.float64) + np.where(fin_b, pb, 0)
+    return {"bad_p": int((~fin_p).sum()), "neg_p": int((probs < 0).sum()),
+            "min_p": float(probs[fin_p].min()) if fin_p.any() else 0.0,
+            "bad_b": int((~fin_b).sum()), "neg_b": int((pb < 0).sum()),
+            "min_b": float(pb[fin_b].min()) if fin_b.any() else 0.0,
+            "max_total": float(total.max()) if len(total) else 0.0, "n_over": int((total > 1 + _SUM_TOL).sum())}
 
 
 def apply_temperature(probs: np.ndarray, temperature: float, rows: int = 4096) -> np.ndarray:
@@ -153,6 +172,22 @@ def unconditional_mass(probs: np.ndarray, p_beyond: np.ndarray, temperature: flo
         t = np.asarray(apply_temperature(probs[a:a + rows], temperature, rows), dtype=np.float64)
         out[a:a + rows] = t * (1.0 - pb[a:a + rows])[:, None]
     return out
+
+
+def ray_distributions(probs: np.ndarray, p_beyond: np.ndarray, temperature: float, edges: np.ndarray,
+                      eps: float, overwrite: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The rays' (float32 (N, K) unconditional bin mass, float64 (N,) far depths in metres) from conditional bin
+    probabilities ``probs`` (N, K) and ``p_beyond`` (N,): :func:`unconditional_mass` at ``temperature``, then
+    :func:`far_depth` at ``eps`` — compiled in one pass when the kernel is there (the same formulas; the row
+    sums in another order, so the last float bit may differ). ``overwrite``: ``probs`` (the caller's scratch)
+    may be overwritten with the result."""
+    from mono_map.mapping.raycast_c import load_kernel, ray_mass_c
+
+    kernel = load_kernel()
+    if kernel is None:
+        p = unconditional_mass(probs, p_beyond, temperature)
+        return p, far_depth(p, p_beyond, edges, eps)
+    return ray_mass_c(kernel, probs, p_beyond, 1.0 / temperature, edges, eps, overwrite)
 
 
 def narrow_bins(probs: np.ndarray, edges: np.ndarray, spread: float) -> tuple[np.ndarray, np.ndarray]:
@@ -204,6 +239,27 @@ def quantise_updates(dl: np.ndarray, hit: float, miss: float, quantum: float, sn
         miss32 = np.float32(miss)
         dl = np.where(dl < 0, np.where(dl <= miss32 / 2, miss32, np.float32(0)), dl).astype(np.float32)
     return dl
+
+
+@functools.lru_cache(maxsize=64)
+def snap_threshold(hit: float, miss: float, quantum: float, min_update: float = 0.0) -> float:
+    """The largest float32 update x ≤ −min_update that :func:`quantise_updates` with ``snap_free`` turns into a
+    whole miss (every x at or below it does: rounding and snapping are monotone). A cell whose rays' most
+    negative update is at or below it, and none positive, holds exactly ``miss`` after snapping."""
+    def snaps(mag: np.uint32) -> bool:
+        x = -np.array([mag], dtype=np.uint32).view(np.float32)
+        return bool(quantise_updates(x, hit, miss, quantum, snap_free=True)[0] == np.float32(miss))
+
+    bits = lambda v: np.array([v], dtype=np.float32).view(np.uint32)[0]   # noqa: E731 (magnitudes: monotone)
+    a, b = bits(-np.float32(miss)), bits(np.float32(min_update))
+    if not snaps(a):
+        raise MonoMapError(f"sensor model: a whole miss ({miss}) does not survive snapping")
+    if snaps(b):
+        return float(-np.array([b], np.uint32).view(np.float32)[0])
+    while a - b > 1:                    # snaps(a), not snaps(b): the smallest magnitude that snaps
+        mid = np.uint32((int(a) + int(b)) // 2)
+        a, b = (mid, b) if snaps(mid) else (a, mid)
+    return float(-np.array([a], np.uint32).view(np.float32)[0])
 
 
 def cdf(probs: np.ndarray, edges: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -296,9 +352,12 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
     ends, inside = cut_at_range(centres, origin32, max_range)
     end_keys = coord_to_key(ends, res)
     box = KeyBox(np.minimum(end_keys.min(axis=0), key_origin), np.maximum(end_keys.max(axis=0), key_origin))
+    thr = snap_threshold(hit, miss, quantum, min_update) if snap_free else None
+    far_box = KeyBox(far_keys.min(axis=0), far_keys.max(axis=0))     # rays in one far cell share one walk
     lin, dl = ray_weights_c(kernel, origin32, key_origin, ends, end_keys, inside, scale, probs, pb, edges,
                             hit, miss, res, box.lo, box.strides, TREE_MAX_VAL, box.size, min_update=min_update,
-                            dense=box.size <= _DENSE_MAX_CELLS)
+                            dense=box.size <= _DENSE_MAX_CELLS, free_threshold=thr,
+                            ray_ids=far_box.linear(far_keys))
     if quantum > 0 or snap_free:
         dl = quantise_updates(dl, hit, miss, quantum, snap_free)
         kept = dl != 0

@@ -293,13 +293,13 @@ class MapIntegrator:
         t0 = time.perf_counter()
         neg, pos = upd.dl < 0, upd.dl > 0
         bounds = (upd.lo, upd.hi)
-        n_free, freed = self._apply(upd.keys[neg], upd.dl[neg], bounds=bounds)
-        n_occ, became = self._apply(upd.keys[pos], upd.dl[pos], bounds=bounds)
+        free_keys, occ_keys = upd.keys[neg], upd.keys[pos]
+        n_free, freed = self._apply(free_keys, upd.dl[neg], bounds=bounds)
+        n_occ, became = self._apply(occ_keys, upd.dl[pos], bounds=bounds)
         timings = {"mirror_s": time.perf_counter() - t0}
         if self.sync_every and self.frames % self.sync_every == 0:
             timings["sync_s"] = self.sync()
-        ks = KeySets(upd.keys[neg], upd.keys[pos], n_rays=upd.n_rays, n_endpoints=int(pos.sum()),
-                     lo=upd.lo, hi=upd.hi)
+        ks = KeySets(free_keys, occ_keys, n_rays=upd.n_rays, n_endpoints=len(occ_keys), lo=upd.lo, hi=upd.hi)
         return FrameIntegration(ks, n_free, n_occ, became, freed, timings)
 
     def _apply(self, keys: np.ndarray, update, bounds: tuple | None = None) -> tuple[int, np.ndarray]:

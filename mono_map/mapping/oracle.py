@@ -17,20 +17,25 @@ from __future__ import annotations
 import numpy as np
 
 from mono_map.depth.bins import DepthBins
-from mono_map.depth.inference import DepthPrediction
+from mono_map.depth.inference import DepthPrediction, check_probs_step
 from mono_map.errors import MonoMapError
 
 
-def lognormal_bin_probs(depth: np.ndarray, sigma: np.ndarray, bins: DepthBins) -> tuple[np.ndarray, np.ndarray]:
+def lognormal_bin_probs(depth: np.ndarray, sigma: np.ndarray, bins: DepthBins,
+                        beyond_only: bool = False) -> tuple[np.ndarray | None, np.ndarray]:
     """N(log depth, σ²) over log-depth, discretised into ``bins``: (K×H×W float32 probabilities, H×W
     float32 mass beyond the last edge). Mass below the first edge goes to the first bin; pixels with
-    depth ≤ 0 get all mass beyond."""
+    depth ≤ 0 get all mass beyond. ``beyond_only``: (None, the mass beyond) — the same values."""
     import torch
 
     d = torch.as_tensor(np.asarray(depth, dtype=np.float32))
     s = torch.as_tensor(np.asarray(sigma, dtype=np.float32)).clamp_min(1e-6)
     mu = torch.log(d.clamp_min(1e-6))
     e = torch.as_tensor(bins.log_edges, dtype=torch.float32).view(-1, 1, 1)
+    if beyond_only:
+        beyond = 1.0 - torch.special.ndtr((e[-1] - mu) / s)
+        beyond[d <= 0] = 1.0
+        return None, beyond.clamp(0, 1).numpy()
     c = torch.special.ndtr((e - mu) / s)                  # P(log depth < edge), (K+1)×H×W
     c[0] = 0.0
     probs = c[1:] - c[:-1]
@@ -78,7 +83,10 @@ class NoisyGroundTruthPredictor:
             grow = g
         return np.where(grow, self.sigma + self.edge_sigma, self.sigma).astype(np.float32)
 
-    def predict_frame(self, seq, i: int, image: np.ndarray | None = None, with_probs: bool = False) -> DepthPrediction:
+    def predict_frame(self, seq, i: int, image: np.ndarray | None = None, with_probs: bool = False,
+                      probs_step: int = 1) -> DepthPrediction:
+        """The noisy depth of frame ``i`` (+ with_probs: its bin probabilities at the pixels
+        [::probs_step, ::probs_step], the same values as at step 1)."""
         gt = seq.depth(i)
         if gt is None:
             raise MonoMapError(f"{seq.path / 'depth_2'}: no ground-truth depth for frame {i}; the oracle "
@@ -90,9 +98,14 @@ class NoisyGroundTruthPredictor:
         entropy = (0.5 * np.log(2 * np.pi * np.e * sig.astype(np.float64) ** 2)).astype(np.float32)
         entropy[gt <= 0] = np.inf
         probs = p_beyond = None
+        step = check_probs_step(probs_step)
         if with_probs:
-            probs, p_beyond = lognormal_bin_probs(depth, sig, self.bins)
+            # per pixel, so the sampled pixels alone give the same values as the whole image
+            probs, p_beyond_s = lognormal_bin_probs(depth[::step, ::step], sig[::step, ::step], self.bins)
+            p_beyond = p_beyond_s if step == 1 else lognormal_bin_probs(depth, sig, self.bins, beyond_only=True)[1]
             # DepthPrediction's convention: bin probabilities conditional on a surface within range
-            within = 1.0 - p_beyond
+            within = 1.0 - p_beyond_s
             probs = np.where(within > 0, probs / np.where(within > 0, within, 1.0), 0.0).astype(np.float32)
-        return DepthPrediction(depth=depth, entropy=entropy, probs=probs, p_beyond=p_beyond)
+            if step > 1:   # channels-last memory, as DepthPredictor's sampled probabilities
+                probs = np.moveaxis(np.ascontiguousarray(np.moveaxis(probs, 0, -1)), -1, 0)
+        return DepthPrediction(depth=depth, entropy=entropy, probs=probs, p_beyond=p_beyond, probs_step=step)

@@ -26,6 +26,7 @@ C_SOURCE = r"""
 #include <float.h>
 #include <stdint.h>
 #include <string.h>
+#include <stdlib.h>
 
 /* computeRayKeys' set-up for the ray origin -> e: steps, tMax, tDelta (OctoMap's types); returns the
    float length |e - origin|. */
@@ -59,17 +60,6 @@ static inline float dda_setup(const float *origin, const float *e, const int64_t
     return length;
 }
 
-/* One DDA step (the axis whose border is nearest); returns the linear-index change (the key changes by
-   step[dim] on that axis: tracking the linear index alone suffices, cur == key_end <=> lin == lin_end). */
-static inline int64_t dda_step(double *tMax, const double *tDelta, const int64_t *dl)
-{
-    int dim;
-    if (tMax[0] < tMax[1]) dim = (tMax[0] < tMax[2]) ? 0 : 2;
-    else dim = (tMax[1] < tMax[2]) ? 1 : 2;
-    tMax[dim] += tDelta[dim];
-    return dl[dim];
-}
-
 /* computeRayKeys(origin, end) for n ends. With mark == NULL: writes the linear indices to out
    (the origin cell first for every ray that leaves it) and returns their number, or -1 if cap is
    too small. With mark (a bitmap of mark_size bytes over the box, 0 = not seen): writes each index
@@ -96,7 +86,7 @@ static inline int64_t ray_cells(const float *origin, const int64_t *key_origin, 
         int step[3];
         double tMax[3], tDelta[3];
         const float length = dda_setup(origin, e, key_origin, res, tree_max_val, step, tMax, tDelta);
-        /* dda_step on scalars (the compiler keeps them in registers) */
+        /* the DDA step on scalars (the compiler keeps them in registers): the axis whose border is nearest */
         const int64_t lin_end = box_index(ke, lo, strides);
         const int64_t d0 = step[0] * strides[0], d1 = step[1] * strides[1], d2 = step[2] * strides[2];
         double t0 = tMax[0], t1 = tMax[1], t2 = tMax[2];
@@ -148,61 +138,183 @@ static inline double cdf_at(double z, const float *p, const double *e, int64_t K
     return c;
 }
 
-/* Far depth of n piecewise-uniform distributions: the depth where P(beyond) = mass - CDF + p_beyond
+/* Far depth of one piecewise-uniform distribution: the depth where P(beyond) = mass - CDF + p_beyond
    first falls below eps (linear within the bin), else the last edge. */
+static inline double far_depth_one(const float *p, double pb, const double *e, int64_t K, double eps)
+{
+    double mass = 0.0;
+    for (int64_t j = 0; j < K; ++j) mass += (double) p[j];
+    double beyond = mass + pb;                   /* P(beyond) at the lower edge of bin j */
+    for (int64_t j = 0; j < K; ++j) {
+        double after = beyond - (double) p[j];
+        if (after < eps) {
+            double f = p[j] > 0.0f ? (beyond - eps) / (double) p[j] : 0.0;
+            f = f < 0.0 ? 0.0 : (f > 1.0 ? 1.0 : f);
+            return e[j] + (e[j + 1] - e[j]) * f;
+        }
+        beyond = after;
+    }
+    return e[K];
+}
+
 void mm_far_depth(const float *probs, const double *p_beyond, const double *edges, int64_t edge_stride,
                   int64_t K, int64_t n, double eps, double *out)
 {
+    for (int64_t i = 0; i < n; ++i)
+        out[i] = far_depth_one(probs + K * i, p_beyond[i], edges + edge_stride * i, K, eps);
+}
+
+/* Rays' distributions in one pass (mono_map/mapping/distribution.py, ray_distributions): conditional bin
+   probabilities q (n x K) at temperature T (inv_t = 1/T: q^(1/T) rescaled to the row's mass, rounded to
+   float32, as apply_temperature), times (1 - p_beyond) (float32, as unconditional_mass) into out (n x K; may
+   be q itself: element-wise), and each row's far depth (far_depth_one) into far. */
+void mm_ray_mass(const float *q, const double *p_beyond, int64_t n, int64_t K, double inv_t, const double *edges,
+                 int64_t edge_stride, double eps, float *out, double *far)
+{
     for (int64_t i = 0; i < n; ++i) {
-        const float *p = probs + K * i;
-        const double *e = edges + edge_stride * i;
-        double mass = 0.0;
-        for (int64_t j = 0; j < K; ++j) mass += (double) p[j];
-        double beyond = mass + p_beyond[i];          /* P(beyond) at the lower edge of bin j */
-        double z = e[K];
-        for (int64_t j = 0; j < K; ++j) {
-            double after = beyond - (double) p[j];
-            if (after < eps) {
-                double f = p[j] > 0.0f ? (beyond - eps) / (double) p[j] : 0.0;
-                f = f < 0.0 ? 0.0 : (f > 1.0 ? 1.0 : f);
-                z = e[j] + (e[j + 1] - e[j]) * f;
-                break;
+        const float *p = q + K * i;
+        float *o = out + K * i;
+        const double keep = 1.0 - p_beyond[i];
+        if (inv_t == 1.0) {
+            for (int64_t j = 0; j < K; ++j) o[j] = (float) ((double) p[j] * keep);
+        } else {
+            double sp = 0.0, sq = 0.0;
+            for (int64_t j = 0; j < K; ++j) {
+                double x = (double) p[j];
+                sp += x;
+                sq += inv_t == 2.0 ? x * x : pow(x, inv_t);
             }
-            beyond = after;
+            const double scale = sp / (sq > 0.0 ? sq : 1.0);
+            for (int64_t j = 0; j < K; ++j) {          /* the tempered values again (a square: cheap) */
+                double x = (double) p[j];
+                double t = inv_t == 2.0 ? x * x : pow(x, inv_t);
+                o[j] = (float) ((double) (float) (t * scale) * keep);
+            }
         }
-        out[i] = z;
+        far[i] = far_depth_one(o, p_beyond[i], edges + edge_stride * i, K, eps);
     }
 }
 
-#define PUT(x, v) do { float v_ = (v); if (v_ != 0.0f && fabsf(v_) >= min_update) { if ((x) < 0 || (x) >= acc_size) return -2; \
+/* Validation sums of n distributions (distribution.check_distribution): counts of non-finite and of negative
+   values in probs (n x K) and p_beyond (n), their minima, and the largest row total sum(probs) + p_beyond.
+   stats: [bad_p, neg_p, min_p, bad_b, neg_b, min_b, max_total]; counts over row totals above tol in *n_over. */
+void mm_check_rows(const float *probs, const double *p_beyond, int64_t n, int64_t K, double tol, double *stats,
+                   int64_t *n_over)
+{
+    int64_t bad_p = 0, neg_p = 0, bad_b = 0, neg_b = 0, over = 0;
+    double min_p = DBL_MAX, min_b = DBL_MAX, max_total = -DBL_MAX;
+    for (int64_t i = 0; i < n; ++i) {
+        const float *p = probs + K * i;
+        double total = 0.0;
+        for (int64_t j = 0; j < K; ++j) {
+            float x = p[j];
+            if (!isfinite(x)) { ++bad_p; continue; }
+            if (x < 0.0f) { ++neg_p; }
+            if ((double) x < min_p) min_p = (double) x;
+            total += (double) x;
+        }
+        double b = p_beyond[i];
+        if (!isfinite(b)) ++bad_b;
+        else {
+            if (b < 0.0) ++neg_b;
+            if (b < min_b) min_b = b;
+            total += b;
+        }
+        if (total > max_total) max_total = total;
+        if (total > tol) ++over;
+    }
+    stats[0] = (double) bad_p; stats[1] = (double) neg_p; stats[2] = min_p;
+    stats[3] = (double) bad_b; stats[4] = (double) neg_b; stats[5] = min_b; stats[6] = max_total;
+    *n_over = over;
+}
+
+/* The per-cell combination of several rays' updates v (each kept only if v != 0 and |v| >= min_update):
+   the largest positive if any, else the most negative. */
+#define COMBINE(best, v) do { float w_ = (v); if (w_ != 0.0f && fabsf(w_) >= min_update && \
+        ((best) == 0.0f || (w_ > 0.0f ? ((best) < 0.0f || w_ > (best)) : ((best) < 0.0f && w_ < (best))))) \
+        (best) = w_; } while (0)
+#define PUT(x, v) do { float v_ = (v); if (v_ != 0.0f) { if ((x) < 0 || (x) >= acc_size) { ret = -2; goto done; } \
         if (acc) { float o_ = acc[(x)]; \
-            if (o_ == 0.0f) { if (off >= cap) return -1; acc[(x)] = v_; out[off++] = (x); } \
+            if (o_ == 0.0f) { if (off >= cap) { ret = -1; goto done; } acc[(x)] = v_; out[off++] = (x); } \
             else if (v_ > 0.0f ? (o_ < 0.0f || v_ > o_) : (o_ < 0.0f && v_ < o_)) acc[(x)] = v_; } \
-        else { if (off >= cap) return -1; out_dl[off] = v_; out[off++] = (x); } } } while (0)
+        else { if (off >= cap) { ret = -1; goto done; } out_dl[off] = v_; out[off++] = (x); } } } while (0)
+typedef struct { const float *p; const double *e; double sc, pb, mass, cum, c_in, c_out, z_sure; int64_t k; int sure; } RayState;
+typedef struct { double t; int64_t j; } SortKey;
+static int cmp_sort_key(const void *a, const void *b)
+{
+    double x = ((const SortKey *) a)->t, y = ((const SortKey *) b)->t;
+    return x < y ? -1 : (x > y ? 1 : 0);
+}
+/* The depth below which a ray's update is surely <= thr (its free-space update then snaps to a whole miss;
+   see mono_map/mapping/distribution.py, snap_threshold): every cell ending before it has
+   dl <= c_out * hit + (mass + pb - c_out) * miss <= thr, i.e. CDF c_out <= C. Margins of 1e-9 (relative)
+   cover the rounding of the CDF; -1 (never) when C < 0. */
+static inline double sure_free_depth(const float *p, const double *e, int64_t K, double mass, double pb, double hit,
+                                     double miss, double thr)
+{
+    double C = (thr - (mass + pb) * miss) / (hit - miss) - 1e-9, cum = 0.0;
+    if (C < 0.0) return -1.0;
+    for (int64_t b = 0; b < K; ++b) {
+        double pb_ = (double) p[b];
+        if (cum + pb_ > C) {
+            double w = e[b + 1] - e[b];
+            double z = (w > 0.0 && pb_ > 0.0) ? e[b] + (C - cum) / pb_ * w : e[b];
+            return z * (1.0 - 1e-9);
+        }
+        cum += pb_;
+    }
+    return DBL_MAX;
+}
+/* Rays are walked in groups sharing one end cell (and so one end point, the cell's centre, and one DDA cell
+   sequence): groups[g] .. groups[g + 1] - 1 index order[], which holds the rays' rows (ends, key_ends and
+   has_end are read from the group's first ray). Each cell of the walk gets the combination of the group's
+   rays' updates, so the walk and the memory traffic are paid once per group. */
 int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const float *ends,
-                       const int64_t *key_ends, const uint8_t *has_end, const double *scale, int64_t n,
+                       const int64_t *key_ends, const uint8_t *has_end, const double *scale,
+                       const int64_t *order, const int64_t *groups, int64_t n_groups,
                        const float *probs, const double *p_beyond, const double *edges, int64_t edge_stride,
                        int64_t K, float hit, float miss, float min_update, double res, const int64_t *lo, const int64_t *strides,
                        int64_t tree_max_val, float *acc, int64_t acc_size, int64_t *out, float *out_dl,
-                       int64_t cap)
+                       int64_t cap, int snap, float thr)
 {
-    int64_t off = 0;
+    int64_t off = 0, ret = 0, max_group = 0;
+    for (int64_t g = 0; g < n_groups; ++g)
+        if (groups[g + 1] - groups[g] > max_group) max_group = groups[g + 1] - groups[g];
+    const size_t mg = (size_t) (max_group > 0 ? max_group : 1);
+    RayState *st = (RayState *) malloc(sizeof(RayState) * mg);
+    int64_t *act = (int64_t *) malloc(sizeof(int64_t) * mg);
+    SortKey *sk = (SortKey *) malloc(sizeof(SortKey) * mg);
+    if (!st || !act || !sk) { free(st); free(act); free(sk); return -3; }
     const int64_t lin_o = box_index(key_origin, lo, strides);
-    for (int64_t i = 0; i < n; ++i) {
-        const float *e = ends + 3 * i;
-        const int64_t *ke = key_ends + 3 * i;
-        const float *p = probs + K * i;
-        const double *ed = edges + edge_stride * i;
-        const double sc = scale[i], pb = p_beyond[i];
-        double mass = 0.0;
-        for (int64_t j = 0; j < K; ++j) mass += (double) p[j];
-        int64_t k = 0;
-        double cum = 0.0;
-        const int same = ke[0] == key_origin[0] && ke[1] == key_origin[1] && ke[2] == key_origin[2];
-        if (same) {                       /* empty ray: only the end cell, holding all the mass */
-            if (has_end[i]) {
-                double c0 = cdf_at(0.0, p, ed, K, &k, &cum);
-                PUT(lin_o, (float) ((mass - c0) * (double) hit + pb * (double) miss));
+    const double dhit = (double) hit, dmiss = (double) miss;
+    for (int64_t g = 0; g < n_groups; ++g) {
+        const int64_t first = order[groups[g]], m = groups[g + 1] - groups[g];
+        const float *e = ends + 3 * first;
+        const int64_t *ke = key_ends + 3 * first;
+        const int end_ok = has_end[first];
+        for (int64_t j = 0; j < m; ++j) {
+            const int64_t i = order[groups[g] + j];
+            RayState *r = st + j;
+            r->p = probs + K * i;
+            r->e = edges + edge_stride * i;
+            r->sc = scale[i];
+            r->pb = p_beyond[i];
+            double mass = 0.0;
+            for (int64_t b = 0; b < K; ++b) mass += (double) r->p[b];
+            r->mass = mass;
+            r->k = 0;
+            r->cum = 0.0;
+            r->c_in = cdf_at(0.0, r->p, r->e, K, &r->k, &r->cum);
+            r->z_sure = snap ? sure_free_depth(r->p, r->e, K, mass, r->pb, dhit, dmiss, (double) thr) : -1.0;
+            r->sure = r->z_sure > 0.0;
+        }
+        if (ke[0] == key_origin[0] && ke[1] == key_origin[1] && ke[2] == key_origin[2]) {
+            /* empty rays: only the end cell, holding all the mass */
+            if (end_ok) {
+                float best = 0.0f;
+                for (int64_t j = 0; j < m; ++j)
+                    COMBINE(best, (float) ((st[j].mass - st[j].c_in) * dhit + st[j].pb * dmiss));
+                PUT(lin_o, best);
             }
             continue;
         }
@@ -211,36 +323,100 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
         const float length = dda_setup(origin, e, key_origin, res, tree_max_val, step, tMax, tDelta);
         int64_t lin = lin_o;
         const int64_t lin_end = box_index(ke, lo, strides);
-        const int64_t dl[3] = {step[0] * strides[0], step[1] * strides[1], step[2] * strides[2]};
-        double c_in = cdf_at(0.0, p, ed, K, &k, &cum);
-        double t_out = fmin(fmin(tMax[0], tMax[1]), tMax[2]);
+        /* the DDA step on scalars (the compiler keeps them in registers): the axis whose border is nearest */
+        const int64_t d0 = step[0] * strides[0], d1 = step[1] * strides[1], d2 = step[2] * strides[2];
+        double t0 = tMax[0], t1 = tMax[1], t2 = tMax[2];
+        const double dt0 = tDelta[0], dt1 = tDelta[1], dt2 = tDelta[2], len = (double) length;
+        double t_out = fmin(fmin(t0, t1), t2), t_in = 0.0;
         int64_t cell = lin_o;            /* the cell being left, entered with CDF c_in */
+        /* rays in their sure-free zone wait in sk, by the ray length (metres) where the zone ends (shortened
+           by 1e-12: t_out < sk.t implies t_out * sc < z_sure); the others are active, evaluated every cell */
+        int64_t n_act = 0, n_sure = 0, s_head = 0;
+        for (int64_t j = 0; j < m; ++j) {
+            if (st[j].sure) {
+                sk[n_sure].t = st[j].sc > 0.0 ? st[j].z_sure / st[j].sc * (1.0 - 1e-12) : DBL_MAX;
+                sk[n_sure++].j = j;
+            } else act[n_act++] = j;
+        }
+        if (n_sure > 1) qsort(sk, (size_t) n_sure, sizeof(SortKey), cmp_sort_key);
         for (;;) {
-            lin += dda_step(tMax, tDelta, dl);
+            if (t0 < t1) {
+                if (t0 < t2) { lin += d0; t0 += dt0; } else { lin += d2; t2 += dt2; }
+            } else if (t1 < t2) { lin += d1; t1 += dt1; } else { lin += d2; t2 += dt2; }
             int at_end = lin == lin_end;
-            double dist = tMax[0] < tMax[1] ? tMax[0] : tMax[1];
-            dist = dist < tMax[2] ? dist : tMax[2];
-            int stop = at_end || dist > (double) length;
-            /* the cell left now: free cell of the ray */
-            double c_out = cdf_at(t_out * sc, p, ed, K, &k, &cum);
-            PUT(cell, (float) ((c_out - c_in) * (double) hit + (mass - c_out + pb) * (double) miss));
+            double dist = t0 < t1 ? t0 : t1;
+            dist = dist < t2 ? dist : t2;
+            int stop = at_end || dist > len;
+            while (s_head < n_sure && (stop || t_out >= sk[s_head].t)) {   /* leaving its zone: exact from here */
+                RayState *r = st + sk[s_head].j;
+                r->sure = 0;
+                r->c_in = cdf_at(t_in * r->sc, r->p, r->e, K, &r->k, &r->cum);   /* where the cell was entered */
+                act[n_act++] = sk[s_head++].j;
+            }
+            /* the cell left now: free cell of the rays */
+            float best = 0.0f;
+            for (int64_t a = 0; a < n_act; ++a) {
+                RayState *r = st + act[a];
+                r->c_out = cdf_at(t_out * r->sc, r->p, r->e, K, &r->k, &r->cum);
+                COMBINE(best, (float) ((r->c_out - r->c_in) * dhit + (r->mass - r->c_out + r->pb) * dmiss));
+            }
+            if (s_head < n_sure) COMBINE(best, miss);   /* stands for the waiting rays' updates (all <= thr) */
+            PUT(cell, best);
             if (stop) {                  /* the end cell: from here to past the end point */
-                if (has_end[i]) {
-                    double t_end = dist > (double) length ? dist : (double) length;
-                    if (!at_end) t_end = (double) length > t_out ? (double) length : t_out;
-                    double c_end = cdf_at(t_end * sc, p, ed, K, &k, &cum);
-                    PUT(lin_end,
-                        (float) ((c_end - c_out) * (double) hit + (mass - c_end + pb) * (double) miss));
+                if (end_ok) {
+                    double t_end = dist > len ? dist : len;
+                    if (!at_end) t_end = len > t_out ? len : t_out;
+                    float best_end = 0.0f;
+                    for (int64_t a = 0; a < n_act; ++a) {
+                        RayState *r = st + act[a];
+                        double c_end = cdf_at(t_end * r->sc, r->p, r->e, K, &r->k, &r->cum);
+                        COMBINE(best_end, (float) ((c_end - r->c_out) * dhit + (r->mass - c_end + r->pb) * dmiss));
+                    }
+                    PUT(lin_end, best_end);
                 }
                 break;
             }
-            if (mass - c_out + pb <= 0.0) break;   /* no mass left from here on */
-            c_in = c_out;
+            int64_t kept = 0;
+            for (int64_t a = 0; a < n_act; ++a) {
+                RayState *r = st + act[a];
+                if (r->mass - r->c_out + r->pb <= 0.0) continue;   /* no mass left from here on: the ray ends */
+                r->c_in = r->c_out;
+                act[kept++] = act[a];
+            }
+            n_act = kept;
+            if (n_act == 0 && s_head == n_sure) break;
+            t_in = t_out;
             t_out = dist;
             cell = lin;
         }
     }
-    return off;
+    ret = off;
+done:
+    free(st);
+    free(act);
+    free(sk);
+    return ret;
+}
+
+/* Merge accumulator b into a at b's n indices (mm_ray_weights' rule: the largest positive, else the most
+   negative), zeroing b there; indices new to a are written to fresh (returns their count). */
+int64_t mm_acc_merge(const int64_t *lin, int64_t n, float *a, float *b, int64_t *fresh)
+{
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; ++i) {
+        const int64_t x = lin[i];
+        const float o = a[x], v = b[x];
+        b[x] = 0.0f;
+        if (o == 0.0f) { a[x] = v; fresh[m++] = x; }
+        else if (v > 0.0f ? (o < 0.0f || v > o) : (o < 0.0f && v < o)) a[x] = v;
+    }
+    return m;
+}
+
+/* dl[i] = acc[lin[i]] for n indices, zeroing acc there (the buffer is left zeroed for the next frame). */
+void mm_acc_take(const int64_t *lin, int64_t n, float *acc, float *dl)
+{
+    for (int64_t i = 0; i < n; ++i) { dl[i] = acc[lin[i]]; acc[lin[i]] = 0.0f; }
 }
 
 /* coordToKey for n float64 points (OctoMap: (int) floor(resolution_factor * (double)(float) p) + tree_max_val):
@@ -556,7 +732,8 @@ def load_kernel():
         fn.restype = ctypes.c_int64
         wfn = lib.mm_ray_weights
         i64, f32, f64 = ctypes.c_int64, ctypes.c_float, ctypes.c_double
-        wfn.argtypes = [p, p, p, p, p, p, i64, p, p, p, i64, i64, f32, f32, f32, f64, p, p, i64, p, i64, p, p, i64]
+        wfn.argtypes = [p, p, p, p, p, p, p, p, i64, p, p, p, i64, i64, f32, f32, f32, f64, p, p, i64, p, i64, p, p,
+                        i64, ctypes.c_int, f32]
         wfn.restype = ctypes.c_int64
         fn.weights = wfn
         ffn = lib.mm_far_depth
@@ -569,10 +746,14 @@ def load_kernel():
                            ("mirror_alloc", [p, i64, p, p, p, i64, p]),
                            ("mirror_apply", [p, i64, p, f32, p, p, p, p, p, f32, f32, f32, p, p]),
                            ("ot_nodes", [p, p, p, i64, p, i64, p, p, p, p, p, p]),
-                           ("ot_leaves", [p, i64, i64, p, p, p])):
+                           ("ot_leaves", [p, i64, i64, p, p, p]),
+                           ("ray_mass", [p, p, i64, i64, f64, p, i64, f64, p, p]),
+                           ("acc_merge", [p, i64, p, p, p]),
+                           ("acc_take", [p, i64, p, p]),
+                           ("check_rows", [p, p, i64, i64, f64, p, p])):
             cfn = getattr(lib, "mm_" + name)
             cfn.argtypes = args
-            cfn.restype = None if name == "box_keys" else i64
+            cfn.restype = None if name in ("box_keys", "ray_mass", "check_rows", "acc_take") else i64
             setattr(fn, name, cfn)
         _LIB = fn
     except (OSError, subprocess.SubprocessError) as exc:
@@ -664,68 +845,90 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
                   has_end: np.ndarray, scale: np.ndarray, probs: np.ndarray, p_beyond: np.ndarray,
                   edges: np.ndarray, hit: float, miss: float, resolution: float, lo: np.ndarray,
                   strides: np.ndarray, tree_max_val: int, box_size: int, min_update: float = 0.0,
-                  dense: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                  dense: bool = True, free_threshold: float | None = None,
+                  ray_ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Run ``mm_ray_weights``: (linear box indices, float32 log-odds updates) of the distribution-weighted
     rays, one entry per distinct cell (rays combined: largest positive update, else most negative).
+    Rays with the same ``ray_ids`` (int64 (N,); None: the end key's box index) share one walk, so they must
+    have the same end point and ``has_end`` (in :func:`distribution_update`: the same far cell, whose centre
+    and its cut at the range limit are the ray's end).
     dense=True accumulates in a float32 buffer over the whole box (reused across frames; on two threads
-    for large frames, each half in its own buffer, merged by the same rule); dense=False writes
+    for large frames, each half of the groups in its own buffer, merged by the same rule); dense=False writes
     (index, update) pairs with repeats and combines them here (for boxes too large to allocate).
-    edges: (K+1,) for all rays or (N, K+1) per ray, float64 metres."""
+    edges: (K+1,) for all rays or (N, K+1) per ray, float64 metres. ``free_threshold`` (a float32 update ≤
+    −min_update; None: off): a cell where some ray's update is ≤ it and no ray's is positive may come out as
+    exactly ``miss`` instead of the most negative update — for callers that snap such cells to a whole miss
+    anyway (:func:`mono_map.mapping.distribution.snap_threshold`); the kernel then skips evaluating rays in
+    the cells where their update is surely ≤ it (most of a ray's length)."""
     c = dict(o=np.ascontiguousarray(origin32, dtype=np.float32), ko=np.ascontiguousarray(key_origin, dtype=np.int64),
              lo=np.ascontiguousarray(lo, dtype=np.int64), st=np.ascontiguousarray(strides, dtype=np.int64),
              hit=float(hit), miss=float(miss), min_update=float(min_update), res=float(resolution),
-             tmv=int(tree_max_val), box_size=int(box_size))
+             tmv=int(tree_max_val), box_size=int(box_size), snap=int(free_threshold is not None),
+             thr=float(free_threshold) if free_threshold is not None else 0.0)
     rays = dict(e=np.ascontiguousarray(ends32, dtype=np.float32), ke=np.ascontiguousarray(key_ends, dtype=np.int64),
                 he=np.ascontiguousarray(has_end, dtype=np.uint8), sc=np.ascontiguousarray(scale, dtype=np.float64),
                 pr=np.ascontiguousarray(probs, dtype=np.float32), pb=np.ascontiguousarray(p_beyond, dtype=np.float64),
                 ed=np.ascontiguousarray(edges, dtype=np.float64))
-    if not dense:
-        lin, dl = _weights_run(fn, c, rays, None)
-        return combine_updates(lin, dl)
     n = len(rays["e"])
-    if n < _PARALLEL_MIN_RAYS or _threads() < 2:
+    ids = (rays["ke"] - c["lo"][None, :]) @ c["st"] if ray_ids is None else np.asarray(ray_ids, dtype=np.int64)
+    order = np.argsort(ids, kind="stable")
+    srt = ids[order]
+    groups = np.flatnonzero(np.r_[True, srt[1:] != srt[:-1]]) if n else np.zeros(0, np.int64)
+    if not dense:
+        lin, dl = _weights_run(fn, c, rays, order, groups, n, None)
+        return combine_updates(lin, dl)
+    if n < _PARALLEL_MIN_RAYS or _threads() < 2 or len(groups) < 2:
         acc = _zeroed_accumulator(0, box_size)
-        lin, _ = _weights_run(fn, c, rays, acc)
-        dl = acc[lin]
-        acc[lin] = 0.0                       # leave the buffer zeroed for the next frame
-        return lin, dl
-    steps = np.cumsum(np.abs(rays["ke"] - c["ko"][None, :]).sum(axis=1))
-    cut = int(np.searchsorted(steps, steps[-1] / 2))
-    halves = [{k: (v if (k == "ed" and v.ndim == 1) else v[sl]) for k, v in rays.items()}
-              for sl in (slice(0, cut), slice(cut, n))]
+        lin, _ = _weights_run(fn, c, rays, order, groups, n, acc)
+        return lin, _acc_take(fn, lin, acc)
+    # two halves of the groups, of about equal work (one DDA walk per group, each ray's set-up ~ 20 steps)
+    sizes = np.diff(np.r_[groups, n])
+    steps = np.cumsum(np.abs(rays["ke"][order[groups]] - c["ko"][None, :]).sum(axis=1) + 20 * sizes)
+    cut = min(max(int(np.searchsorted(steps, steps[-1] / 2)), 1), len(groups) - 1)
     acc_a, acc_b = _zeroed_accumulator(0, box_size), _zeroed_accumulator(1, box_size)
-    future = _pool().submit(_weights_run, fn, c, halves[1], acc_b)
-    lin_a, _ = _weights_run(fn, c, halves[0], acc_a)
+    future = _pool().submit(_weights_run, fn, c, rays, order, groups[cut:], n, acc_b)
+    lin_a, _ = _weights_run(fn, c, rays, order, groups[:cut], int(groups[cut]), acc_a)
     lin_b, _ = future.result()
-    old, new = acc_a[lin_b], acc_b[lin_b]
-    acc_b[lin_b] = 0.0
-    take = (old == 0) | np.where(new > 0, (old < 0) | (new > old), (old < 0) & (new < old))
-    acc_a[lin_b[take]] = new[take]
-    lin = np.concatenate([lin_a, lin_b[old == 0]])
-    dl = acc_a[lin]
-    acc_a[lin] = 0.0
-    return lin, dl
+    fresh = np.empty(len(lin_b), dtype=np.int64)
+    m = fn.acc_merge(lin_b.ctypes.data, len(lin_b), acc_a.ctypes.data, acc_b.ctypes.data, fresh.ctypes.data)
+    lin = np.concatenate([lin_a, fresh[:m]])
+    return lin, _acc_take(fn, lin, acc_a)
 
 
-def _weights_run(fn, c: dict, r: dict, acc: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
-    """One ``mm_ray_weights`` call over rays ``r``: (distinct indices, None) accumulating into ``acc``, or
-    with acc None the (index, update) pairs with repeats."""
+def _acc_take(fn, lin: np.ndarray, acc: np.ndarray) -> np.ndarray:
+    """float32 acc[lin], zeroing those cells (the buffer stays zeroed for the next frame)."""
+    lin = np.ascontiguousarray(lin, dtype=np.int64)
+    dl = np.empty(len(lin), dtype=np.float32)
+    fn.acc_take(lin.ctypes.data, len(lin), acc.ctypes.data, dl.ctypes.data)
+    return dl
+
+
+def _weights_run(fn, c: dict, r: dict, order: np.ndarray, starts: np.ndarray, stop: int,
+                 acc: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """One ``mm_ray_weights`` call over the groups beginning at ``starts`` (positions in ``order``; the last
+    ends at ``stop``): (distinct indices, None) accumulating into ``acc``, or with acc None the (index,
+    update) pairs with repeats."""
     k = r["pr"].shape[1]
     edge_stride = 0 if r["ed"].ndim == 1 else r["ed"].shape[1]
-    cap = _capacity(r["ke"], c["ko"]) + len(r["e"])
+    bounds = np.ascontiguousarray(np.r_[starts, stop], dtype=np.int64)
+    cap = _capacity(r["ke"][order[starts]], c["ko"]) + 2 * len(starts)     # one walk (+ end cell) per group
     if acc is not None:
         cap = min(cap, c["box_size"])
+    order = np.ascontiguousarray(order, dtype=np.int64)
     while True:
         out = np.empty(cap, dtype=np.int64)
         out_dl = None if acc is not None else np.empty(cap, dtype=np.float32)
         n = int(fn.weights(c["o"].ctypes.data, c["ko"].ctypes.data, r["e"].ctypes.data, r["ke"].ctypes.data,
-                           r["he"].ctypes.data, r["sc"].ctypes.data, len(r["e"]), r["pr"].ctypes.data,
+                           r["he"].ctypes.data, r["sc"].ctypes.data, order.ctypes.data, bounds.ctypes.data,
+                           len(starts), r["pr"].ctypes.data,
                            r["pb"].ctypes.data, r["ed"].ctypes.data, edge_stride, k, c["hit"], c["miss"],
                            c["min_update"], c["res"], c["lo"].ctypes.data, c["st"].ctypes.data, c["tmv"],
                            None if acc is None else acc.ctypes.data, c["box_size"], out.ctypes.data,
-                           None if out_dl is None else out_dl.ctypes.data, len(out)))
+                           None if out_dl is None else out_dl.ctypes.data, len(out), c["snap"], c["thr"]))
         if n == -2:
             raise AssertionError("ray left its bounding box")  # the margin covers DDA overshoot
+        if n == -3:
+            raise MemoryError("mm_ray_weights: no memory for the ray states")
         if n >= 0:
             return out[:n], None if out_dl is None else out_dl[:n]
         if acc is not None:     # cannot happen (distinct cells <= box); guard against a partial write
@@ -766,6 +969,34 @@ def far_depth_c(fn, probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, 
     fn.far_depth(pr.ctypes.data, pb.ctypes.data, ed.ctypes.data, 0 if ed.ndim == 1 else ed.shape[1], pr.shape[1],
                  len(pr), float(eps), out.ctypes.data)
     return out
+
+
+def ray_mass_c(fn, probs: np.ndarray, p_beyond: np.ndarray, inv_temperature: float, edges: np.ndarray,
+               eps: float, overwrite: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """``mm_ray_mass``: (float32 (N, K) unconditional bin mass, float64 (N,) far depths) of conditional bin
+    probabilities (N, K) at temperature 1 / inv_temperature (see distribution.ray_distributions);
+    ``overwrite``: the mass is written over ``probs`` when it is a C-contiguous float32 array."""
+    pr = np.ascontiguousarray(probs, dtype=np.float32)
+    pb = np.ascontiguousarray(p_beyond, dtype=np.float64)
+    ed = np.ascontiguousarray(edges, dtype=np.float64)
+    n, k = pr.shape
+    out = pr if overwrite else np.empty((n, k), dtype=np.float32)   # element-wise, so in place is safe
+    far = np.empty(n, dtype=np.float64)
+    fn.ray_mass(pr.ctypes.data, pb.ctypes.data, n, k, float(inv_temperature), ed.ctypes.data,
+                0 if ed.ndim == 1 else ed.shape[1], float(eps), out.ctypes.data, far.ctypes.data)
+    return out, far
+
+
+def check_rows_c(fn, probs: np.ndarray, p_beyond: np.ndarray, tol: float) -> dict:
+    """``mm_check_rows``: counts and extremes of N distributions' values (see distribution.check_distribution)."""
+    pr = np.ascontiguousarray(probs, dtype=np.float32)
+    pb = np.ascontiguousarray(p_beyond, dtype=np.float64)
+    stats = np.empty(7, dtype=np.float64)
+    over = np.zeros(1, dtype=np.int64)
+    fn.check_rows(pr.ctypes.data, pb.ctypes.data, len(pr), pr.shape[1] if pr.ndim == 2 else 0, float(tol),
+                  stats.ctypes.data, over.ctypes.data)
+    keys = ("bad_p", "neg_p", "min_p", "bad_b", "neg_b", "min_b", "max_total")
+    return dict(zip(keys, stats.tolist()), n_over=int(over[0]))
 
 
 def point_keys_c(fn, points: np.ndarray, resolution: float, tree_max_val: int):
