@@ -20,6 +20,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+")
     ap.add_argument("--out", required=True)
+    ap.add_argument("--continues", action="append", default=[], metavar="RUN=PARENT",
+                    help="RUN was started from PARENT's weights (train.init): its CPU-hours are drawn after PARENT's")
     a = ap.parse_args()
     curves = {}
     for r in a.runs:
@@ -27,6 +29,14 @@ def main() -> None:
         if not f.is_file():
             sys.exit(f"plot_learning_curve: {f}: no such file")
         curves[Path(r).name] = [json.loads(line) for line in f.read_text().splitlines() if line.strip()]
+    for spec in a.continues:
+        child, _, parent = spec.partition("=")
+        if child not in curves or parent not in curves:
+            sys.exit(f"plot_learning_curve: --continues {spec}: both runs must be given (names: {', '.join(curves)})")
+        offset = curves[parent][-1]["cpu_hours"]
+        curves[child] = [dict(r, cpu_hours=r["cpu_hours"] + offset) for r in curves[child]]
+    steps = sorted({b["step"] - a_["step"] for rows in curves.values() for a_, b in zip(rows, rows[1:])})
+    every = f", every {steps[0]} steps" if len(steps) == 1 else ""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -45,7 +55,7 @@ def main() -> None:
             ax.set_ylabel(lab)
             ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle("Learning curves: held-out randomised town val09 (LiDAR ground truth ≤ 80 m), every 500 steps")
+    fig.suptitle(f"Learning curves: held-out randomised town val09 (LiDAR ground truth ≤ 80 m){every}")
     fig.tight_layout()
     with atomic_path(Path(a.out)) as tmp:
         fig.savefig(tmp, dpi=100, format="png")

@@ -157,14 +157,15 @@ def run_table(job: TableJob) -> Table:
     ref_bt = ref.path(out_dir)
     gt_bt = None if gt is None else gt.path(out_dir)
 
-    ref_leaves = tree_leaves(load_tree(ref_bt))
+    ref_tree = load_tree(ref_bt)                 # read once: its leaves are every row's reference
+    ref_leaves = tree_leaves(ref_tree)
     gt_leaves = tree_leaves(load_tree(gt_bt)) if gt_bt is not None else None
     pictured = ["LiDAR-FOV", "mono (keep 1.0)", "mono keep 0.8"] + (["mono, distribution"] if extended else [])
     rows, pics, reliability = [], {}, {}
     for label, source, keep, mj in entries:
         bt = mj.path(out_dir)
         stats = read_map_sidecar(bt)["stats"]
-        tree = load_tree(bt)
+        tree = ref_tree if bt == ref_bt else load_tree(bt)
         leaves = ref_leaves if bt == ref_bt else tree_leaves(tree)
         if label in pictured:
             pics[label] = leaves
