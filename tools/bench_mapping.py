@@ -122,7 +122,7 @@ def agreement(a, b) -> dict:
 
 def bench_integrations(args) -> int:
     """--integrate: keep vs distribution, back to back, on the same frames (see the module docstring)."""
-    from mono_map.mapping.build import bin_edges, build_map, distribution_frame, load_predictor, run_predictor
+    from mono_map.mapping.build import FrameInputs, build_map, load_predictor, make_builder
 
     selection = parse_frames(args.frames, default=first_frames(500))
     seq = prepare_sequence(args.data_root, args.seq, selection)
@@ -131,32 +131,27 @@ def bench_integrations(args) -> int:
     predictor = load_predictor(None if args.model == "shipped" else args.model)
     dcfg = DistributionConfig(eps=args.eps, min_update=args.min_update, ray_step=args.ray_step)
     cfg = OctoMapConfig(resolution=args.res)
-    edges = bin_edges(predictor)
     print(f"sequence {args.seq}, {desc}, model {args.model}, keep {args.keep} vs distribution {dcfg}")
-    preds = [(i, run_predictor(predictor, seq, i, seq.image(i), with_probs=True, probs_step=dcfg.ray_step))
-             for i in frames]
-    K = seq.calib.K2
+    # every frame's image and prediction (with the rays' probabilities) once, shared by both integrations
+    inputs = [FrameInputs(seq, i, {id(predictor): dcfg.ray_step}) for i in frames]
+    for fi in inputs:
+        fi.prediction(predictor)
 
-    def keep_maps():
-        integ = MapIntegrator(cfg)
-        for i, p in preds:
-            T = seq.T_world_cam2(i)
-            mask = select_pixels(p.depth, p.entropy, args.keep, 1.0, 80.0, stride=args.stride, p_beyond=p.p_beyond)
-            integ.insert(pixels_to_world(p.depth, mask, K, T), camera_origin(T))
-        integ.sync()
-
-    def dist_maps():
-        integ = MapIntegrator(cfg)
-        for i, p in preds:
-            _, valid = select_pixels(p.depth, p.entropy, 1.0, 1.0, 80.0, stride=args.stride, return_valid=True)
-            distribution_frame(integ, p, valid, K, seq.T_world_cam2(i), edges, dcfg, i)
-        integ.sync()
+    def updates(integrate):
+        """The map update alone: the builder's per-frame step on the predicted frames, then the octree."""
+        def run():
+            b = make_builder(seq, "mono", args.keep, n_frames=len(frames), octomap=cfg, stride=args.stride,
+                             predictor=predictor, integrate=integrate, distribution=dcfg)
+            for i, fi in zip(frames, inputs):
+                b.step(i, fi)
+            b.integrator.sync()
+        return run
 
     def builds(integrate):
         return lambda: build_map(seq, "mono", args.keep, frames=frames, octomap=cfg, stride=args.stride,
                                  predictor=predictor, integrate=integrate, distribution=dcfg, show_progress=False)
 
-    for what, keep_fn, dist_fn in (("map update", keep_maps, dist_maps),
+    for what, keep_fn, dist_fn in (("map update", updates("keep"), updates("distribution")),
                                    ("whole build", builds("keep"), builds("distribution"))):
         times = {"keep": [], "distribution": []}
         for _ in range(args.repeat):
