@@ -982,9 +982,25 @@ def ray_mass_c(fn, probs: np.ndarray, p_beyond: np.ndarray, inv_temperature: flo
     n, k = pr.shape
     out = pr if overwrite else np.empty((n, k), dtype=np.float32)   # element-wise, so in place is safe
     far = np.empty(n, dtype=np.float64)
-    fn.ray_mass(pr.ctypes.data, pb.ctypes.data, n, k, float(inv_temperature), ed.ctypes.data,
-                0 if ed.ndim == 1 else ed.shape[1], float(eps), out.ctypes.data, far.ctypes.data)
+    es = 0 if ed.ndim == 1 else ed.shape[1]
+
+    def rows(a: int, b: int) -> None:      # rows a..b-1 (row by row: halves on two threads give the same bits)
+        fn.ray_mass(pr.ctypes.data + 4 * k * a, pb.ctypes.data + 8 * a, b - a, k, float(inv_temperature),
+                    ed.ctypes.data + 8 * es * a, es, float(eps), out.ctypes.data + 4 * k * a, far.ctypes.data + 8 * a)
+
+    _on_two_threads(rows, n)
     return out, far
+
+
+def _on_two_threads(rows, n: int) -> None:
+    """rows(a, b) over 0..n: in two halves on two threads for large n (ctypes releases the GIL), else at once."""
+    if n < _PARALLEL_MIN_RAYS or _threads() < 2:
+        rows(0, n)
+        return
+    half = n // 2
+    future = _pool().submit(rows, half, n)
+    rows(0, half)
+    future.result()
 
 
 def check_rows_c(fn, probs: np.ndarray, p_beyond: np.ndarray, tol: float) -> dict:
