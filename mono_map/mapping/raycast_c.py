@@ -17,6 +17,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -763,6 +764,7 @@ def load_kernel():
 
 
 _PARALLEL_MIN_RAYS = 4096
+_WEIGHT_CHUNKS = 16      # distribution rays: chunks of groups shared out between the two threads
 _POOL = None
 
 
@@ -881,14 +883,30 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
         acc = _zeroed_accumulator(0, box_size)
         lin, _ = _weights_run(fn, c, rays, order, groups, n, acc)
         return lin, _acc_take(fn, lin, acc)
-    # two halves of the groups, of about equal work (one DDA walk per group, each ray's set-up ~ 20 steps)
+    # the groups in chunks of about equal work (one DDA walk per group, each ray's set-up ~ 20 steps), taken by
+    # two threads as they come free (each thread accumulates into its own buffer; merged below)
     sizes = np.diff(np.r_[groups, n])
-    steps = np.cumsum(np.abs(rays["ke"][order[groups]] - c["ko"][None, :]).sum(axis=1) + 20 * sizes)
-    cut = min(max(int(np.searchsorted(steps, steps[-1] / 2)), 1), len(groups) - 1)
+    work = np.cumsum(np.abs(rays["ke"][order[groups]] - c["ko"][None, :]).sum(axis=1) + 20 * sizes)
+    cuts = np.unique(np.r_[0, np.searchsorted(work, work[-1] * np.arange(1, _WEIGHT_CHUNKS) / _WEIGHT_CHUNKS),
+                           len(groups)])
+    chunks = iter(zip(cuts[:-1], cuts[1:]))
+    lock = threading.Lock()
+
+    def worker(acc: np.ndarray) -> np.ndarray:
+        lins = []
+        while True:
+            with lock:
+                chunk = next(chunks, None)
+            if chunk is None:
+                return np.concatenate(lins) if lins else np.zeros(0, np.int64)
+            a, b = int(chunk[0]), int(chunk[1])
+            lins.append(_weights_run(fn, c, rays, order, groups[a:b], int(groups[b]) if b < len(groups) else n,
+                                     acc)[0])
+
     acc_a, acc_b = _zeroed_accumulator(0, box_size), _zeroed_accumulator(1, box_size)
-    future = _pool().submit(_weights_run, fn, c, rays, order, groups[cut:], n, acc_b)
-    lin_a, _ = _weights_run(fn, c, rays, order, groups[:cut], int(groups[cut]), acc_a)
-    lin_b, _ = future.result()
+    future = _pool().submit(worker, acc_b)
+    lin_a = worker(acc_a)
+    lin_b = future.result()
     fresh = np.empty(len(lin_b), dtype=np.int64)
     m = fn.acc_merge(lin_b.ctypes.data, len(lin_b), acc_a.ctypes.data, acc_b.ctypes.data, fresh.ctypes.data)
     lin = np.concatenate([lin_a, fresh[:m]])
