@@ -352,7 +352,8 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
     ends, inside = cut_at_range(centres, origin32, max_range)
     end_keys = coord_to_key(ends, res)
     box = KeyBox(np.minimum(end_keys.min(axis=0), key_origin), np.maximum(end_keys.max(axis=0), key_origin))
-    thr = snap_threshold(hit, miss, quantum, min_update) if snap_free else None
+    # the kernel's bound on an update needs hit > 0 > miss (OctoMap's prob_hit > 0.5 > prob_miss)
+    thr = snap_threshold(hit, miss, quantum, min_update) if snap_free and hit > 0 > miss else None
     far_box = KeyBox(far_keys.min(axis=0), far_keys.max(axis=0))     # rays in one far cell share one walk
     lin, dl = ray_weights_c(kernel, origin32, key_origin, ends, end_keys, inside, scale, probs, pb, edges,
                             hit, miss, res, box.lo, box.strides, TREE_MAX_VAL, box.size, min_update=min_update,

@@ -234,6 +234,8 @@ void mm_check_rows(const float *probs, const double *p_beyond, int64_t n, int64_
 #define COMBINE(best, v) do { float w_ = (v); if (w_ != 0.0f && fabsf(w_) >= min_update && \
         ((best) == 0.0f || (w_ > 0.0f ? ((best) < 0.0f || w_ > (best)) : ((best) < 0.0f && w_ < (best))))) \
         (best) = w_; } while (0)
+#define COMBINE_ANY(best, w_) do { if ((best) == 0.0f || ((w_) > 0.0f ? ((best) < 0.0f || (w_) > (best)) : \
+        ((best) < 0.0f && (w_) < (best)))) (best) = (w_); } while (0)          /* the same rule, no filter */
 #define PUT(x, v) do { float v_ = (v); if (v_ != 0.0f) { if ((x) < 0 || (x) >= acc_size) { ret = -2; goto done; } \
         if (acc) { float o_ = acc[(x)]; \
             if (o_ == 0.0f) { if (off >= cap) { ret = -1; goto done; } acc[(x)] = v_; out[off++] = (x); } \
@@ -361,7 +363,9 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
                 r->c_out = cdf_at(t_out * r->sc, r->p, r->e, K, &r->k, &r->cum);
                 COMBINE(best, (float) ((r->c_out - r->c_in) * dhit + (r->mass - r->c_out + r->pb) * dmiss));
             }
-            if (s_head < n_sure) COMBINE(best, miss);   /* stands for the waiting rays' updates (all <= thr) */
+            /* a whole miss stands for the waiting rays' updates (all <= thr <= -min_update: they pass the filter
+               and snap to a miss; the stand-in is combined without the filter, as they would be) */
+            if (s_head < n_sure) COMBINE_ANY(best, miss);
             PUT(cell, best);
             if (stop) {                  /* the end cell: from here to past the end point */
                 if (end_ok) {
