@@ -626,3 +626,36 @@ def test_probabilities_at_a_step_the_rays_cannot_use_are_one_clear_error(tiny_ro
         maps.append(tree_cells(r.tree))
     assert len(maps[0]) > 100 and maps[0] == maps[1]
 
+
+
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_an_interrupted_frame_leaves_the_reused_buffers_clean(monkeypatch, threads):
+    """An error (e.g. Ctrl-C) in the middle of a frame's kernel calls must not leave updates in the buffers the
+    next frame reuses: the same frame integrated again gives the same updates as before the interrupt."""
+    from mono_map.mapping import raycast_c
+
+    monkeypatch.setenv("MONO_MAP_RAY_THREADS", threads)
+    monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
+    o1, f1, d1, p1, b1, e1 = street_rays(1, seed=5)[0]
+
+    def second():
+        u = distribution_update(o1, f1, d1, p1, b1, e1, 0.2, HIT, MISS, min_update=0.05)
+        order = np.lexsort(u.keys.T)
+        return u.keys[order], u.dl[order]
+
+    want = second()
+    real, calls = raycast_c._weights_run, []
+
+    def failing(*args, **kw):
+        calls.append(1)
+        out = real(*args, **kw)             # the buffer is written, then the "interrupt" comes
+        if len(calls) == (1 if threads == "1" else 3):   # one call on one thread; 16 chunks on two
+            raise KeyboardInterrupt
+        return out
+
+    monkeypatch.setattr(raycast_c, "_weights_run", failing)
+    with pytest.raises(KeyboardInterrupt):
+        distribution_update(o1, f1, d1, p1, b1, e1, 0.2, HIT, MISS, min_update=0.05)
+    monkeypatch.setattr(raycast_c, "_weights_run", real)
+    got = second()
+    assert calls and np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])

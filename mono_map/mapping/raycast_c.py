@@ -836,8 +836,12 @@ def ray_cells_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.nda
         steps = np.cumsum(np.abs(ke - ko[None, :]).sum(axis=1))
         cut = int(np.searchsorted(steps, steps[-1] / 2))
         future = _pool().submit(_distinct_cells, fn, *args, e[cut:], ke[cut:], mark)
-        first = _distinct_cells(fn, *args, e[:cut], ke[:cut], mark)
-        return np.concatenate([first, future.result()])
+        try:
+            first = _distinct_cells(fn, *args, e[:cut], ke[:cut], mark)
+            return np.concatenate([first, future.result()])
+        except BaseException:            # e.g. Ctrl-C: the caller clears the bitmap once the other thread is done
+            _settle(future)
+            raise
     cap = _capacity(ke, ko)
     while True:
         out = np.empty(cap, dtype=np.int64)
@@ -885,8 +889,12 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
         return combine_updates(lin, dl)
     if n < _PARALLEL_MIN_RAYS or _threads() < 2 or len(groups) < 2:
         acc = _zeroed_accumulator(0, box_size)
-        lin, _ = _weights_run(fn, c, rays, order, groups, n, acc)
-        return lin, _acc_take(fn, lin, acc)
+        try:
+            lin, _ = _weights_run(fn, c, rays, order, groups, n, acc)
+            return lin, _acc_take(fn, lin, acc)
+        except BaseException:            # e.g. Ctrl-C: cells of unknown extent written; zero all for the next frame
+            acc[:] = 0.0
+            raise
     # the groups in chunks of about equal work (one DDA walk per group, each ray's set-up ~ 20 steps), taken by
     # two threads as they come free (each thread accumulates into its own buffer; merged below)
     sizes = np.diff(np.r_[groups, n])
@@ -894,13 +902,13 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
     cuts = np.unique(np.r_[0, np.searchsorted(work, work[-1] * np.arange(1, _WEIGHT_CHUNKS) / _WEIGHT_CHUNKS),
                            len(groups)])
     chunks = iter(zip(cuts[:-1], cuts[1:]))
-    lock = threading.Lock()
+    lock, cancel = threading.Lock(), threading.Event()
 
     def worker(acc: np.ndarray) -> np.ndarray:
         lins = []
         while True:
             with lock:
-                chunk = next(chunks, None)
+                chunk = None if cancel.is_set() else next(chunks, None)
             if chunk is None:
                 return np.concatenate(lins) if lins else np.zeros(0, np.int64)
             a, b = int(chunk[0]), int(chunk[1])
@@ -909,12 +917,26 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
 
     acc_a, acc_b = _zeroed_accumulator(0, box_size), _zeroed_accumulator(1, box_size)
     future = _pool().submit(worker, acc_b)
-    lin_a = worker(acc_a)
-    lin_b = future.result()
-    fresh = np.empty(len(lin_b), dtype=np.int64)
-    m = fn.acc_merge(lin_b.ctypes.data, len(lin_b), acc_a.ctypes.data, acc_b.ctypes.data, fresh.ctypes.data)
-    lin = np.concatenate([lin_a, fresh[:m]])
-    return lin, _acc_take(fn, lin, acc_a)
+    try:
+        lin_a = worker(acc_a)
+        lin_b = future.result()
+        fresh = np.empty(len(lin_b), dtype=np.int64)
+        m = fn.acc_merge(lin_b.ctypes.data, len(lin_b), acc_a.ctypes.data, acc_b.ctypes.data, fresh.ctypes.data)
+        lin = np.concatenate([lin_a, fresh[:m]])
+        return lin, _acc_take(fn, lin, acc_a)
+    except BaseException:                # e.g. Ctrl-C: stop the other thread, then zero both buffers for the next frame
+        cancel.set()
+        _settle(future)
+        acc_a[:] = 0.0
+        acc_b[:] = 0.0
+        raise
+
+
+def _settle(future) -> None:
+    """Wait until the other thread's kernel call is over (its result or error is not wanted any more)."""
+    import concurrent.futures
+
+    concurrent.futures.wait([future])
 
 
 def _acc_take(fn, lin: np.ndarray, acc: np.ndarray) -> np.ndarray:
