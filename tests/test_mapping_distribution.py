@@ -644,18 +644,19 @@ def test_an_interrupted_frame_leaves_the_reused_buffers_clean(monkeypatch, threa
         return u.keys[order], u.dl[order]
 
     want = second()
-    real, calls = raycast_c._weights_run, []
+    kernel = raycast_c.load_kernel()
+    real, calls = kernel.weights, []
 
-    def failing(*args, **kw):
+    def failing(*args):
         calls.append(1)
-        out = real(*args, **kw)             # the buffer is written, then the "interrupt" comes
+        out = real(*args)                   # the buffer is written, then the "interrupt" comes
         if len(calls) == (1 if threads == "1" else 3):   # one call on one thread; 16 chunks on two
             raise KeyboardInterrupt
         return out
 
-    monkeypatch.setattr(raycast_c, "_weights_run", failing)
+    monkeypatch.setattr(kernel, "weights", failing)
     with pytest.raises(KeyboardInterrupt):
         distribution_update(o1, f1, d1, p1, b1, e1, 0.2, HIT, MISS, min_update=0.05)
-    monkeypatch.setattr(raycast_c, "_weights_run", real)
+    monkeypatch.setattr(kernel, "weights", real)
     got = second()
     assert calls and np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
