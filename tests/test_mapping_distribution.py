@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -645,12 +647,13 @@ def test_an_interrupted_frame_leaves_the_reused_buffers_clean(monkeypatch, threa
 
     want = second()
     kernel = raycast_c.load_kernel()
-    real, calls = kernel.weights, []
+    real, counter, calls = kernel.weights, itertools.count(), []
 
     def failing(*args):
-        calls.append(1)
+        k = next(counter)                   # atomic: the two threads' calls get distinct numbers
+        calls.append(k)
         out = real(*args)                   # the buffer is written, then the "interrupt" comes
-        if len(calls) == (1 if threads == "1" else 3):   # one call on one thread; 16 chunks on two
+        if k == (0 if threads == "1" else 2):   # one call on one thread; 16 chunks on two
             raise KeyboardInterrupt
         return out
 
