@@ -585,13 +585,13 @@ def test_distribution_checks_agree_compiled_and_numpy(monkeypatch):
     rng = np.random.default_rng(9)
     p = rng.dirichlet(np.ones(8), size=300).astype(np.float32) * 0.9
     pb = rng.uniform(0, 0.1, 300)
-    p[5, 2], p[9, 1], pb[4] = np.nan, -0.25, np.inf
+    p[5, 2], p[9, 1], p[12, 3], pb[4] = np.nan, -0.25, -np.inf, np.inf
     p[11] *= 1.5
     compiled = distribution.row_stats(p, pb)
     monkeypatch.setattr(raycast_c, "load_kernel", lambda: None)
     numpy_ = distribution.row_stats(p, pb)
     assert compiled == pytest.approx(numpy_, rel=1e-9)
-    assert compiled["bad_p"] == 1 and compiled["neg_p"] == 1 and compiled["bad_b"] == 1 and compiled["n_over"] >= 1
+    assert compiled["bad_p"] == 2 and compiled["neg_p"] == 1 and compiled["bad_b"] == 1 and compiled["n_over"] >= 1
 
 
 def test_oracle_probabilities_at_a_pixel_step_are_its_full_maps_there(tiny_root):

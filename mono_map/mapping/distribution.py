@@ -138,9 +138,9 @@ def row_stats(probs: np.ndarray, pb: np.ndarray) -> dict:
         return check_rows_c(kernel, probs, pb, 1 + _SUM_TOL)
     fin_p, fin_b = np.isfinite(probs), np.isfinite(pb)
     total = np.where(fin_p, probs, 0).sum(axis=1, dtype=np.float64) + np.where(fin_b, pb, 0)
-    return {"bad_p": int((~fin_p).sum()), "neg_p": int((probs < 0).sum()),
+    return {"bad_p": int((~fin_p).sum()), "neg_p": int(((probs < 0) & fin_p).sum()),   # finite ones, as compiled
             "min_p": float(probs[fin_p].min()) if fin_p.any() else 0.0,
-            "bad_b": int((~fin_b).sum()), "neg_b": int((pb < 0).sum()),
+            "bad_b": int((~fin_b).sum()), "neg_b": int(((pb < 0) & fin_b).sum()),
             "min_b": float(pb[fin_b].min()) if fin_b.any() else 0.0,
             "max_total": float(total.max()) if len(total) else 0.0, "n_over": int((total > 1 + _SUM_TOL).sum())}
 
