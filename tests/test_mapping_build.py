@@ -389,3 +389,27 @@ def test_maps_of_one_pass_equal_maps_built_alone_and_predict_once(tiny_root, tmp
         build_and_write_all([MapRequest(jobs[0]), MapRequest(MapJob.of(seq, "lidar-fov", range(0, 2)))], seq,
                             tmp_path / "bad", show_progress=False)
     assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.parametrize("which", [0, 1])
+def test_a_rename_failing_in_a_pass_publishes_none_of_its_maps(tiny_root, tmp_path, monkeypatch, which):
+    """build_and_write_all publishes every map of the pass or none: one map's .json failing to rename leaves
+    neither map (whichever files were renamed already are removed again)."""
+    import os
+
+    from mono_map.mapping.jobs import MapRequest, build_and_write_all
+
+    seq = open_sequence(tiny_root, "tiny")
+    jobs = [MapJob.of(seq, "lidar-fov", range(0, 2)), MapJob.of(seq, "lidar", range(0, 2))]
+    failing = jobs[which].path(tmp_path).with_suffix(".json")
+    real = os.replace
+
+    def replace(src, dst):
+        if os.fspath(dst) == os.fspath(failing):
+            raise OSError(28, "No space left on device", os.fspath(dst))
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    with pytest.raises(OSError):
+        build_and_write_all([MapRequest(j) for j in jobs], seq, tmp_path, show_progress=False)
+    assert jobs[0].path(tmp_path).parent == tmp_path and not list(tmp_path.iterdir())

@@ -321,11 +321,9 @@ def build_and_write(job: MapJob, seq, out_dir: Path, name: str | None = None, ob
 def build_and_write_all(requests: list[MapRequest], seq, out_dir: Path, predictor=None,
                         show_progress: bool = True) -> list[tuple[Path, dict]]:
     """Build every requested map of the same frames in one pass over ``seq`` (each frame read and
-    predicted once: :func:`mono_map.mapping.build.build_maps`) and publish each map's files together;
-    if any build fails, nothing is published. predictor: None loads each mono job's model (once per
+    predicted once: :func:`mono_map.mapping.build.build_maps`) and publish all maps' files together;
+    if any build or any rename fails, nothing is published. predictor: None loads each mono job's model (once per
     model). Returns (bt path, stats) per request."""
-    import contextlib
-
     from mono_map.errors import MonoMapError
     from mono_map.io import atomic_outputs
     from mono_map.mapping.build import make_builders, run_builders
@@ -333,14 +331,16 @@ def build_and_write_all(requests: list[MapRequest], seq, out_dir: Path, predicto
     frames = list(requests[0].job.frames)
     if any(list(r.job.frames) != frames for r in requests):
         raise ValueError("build_and_write_all: the maps of one pass must share their frames")
-    with contextlib.ExitStack() as stack:
-        maps, outputs = [], []
-        for r in requests:
-            bt = Path(out_dir) / f"{r.name or r.job.stem()}.bt"
-            extra = ([bt.with_suffix(".ot")] if r.write_ot else []) + ([Path(r.rrd)] if r.rrd is not None else [])
-            targets = [bt] + extra + [bt.with_suffix(".json")]
-            temps = stack.enter_context(atomic_outputs(*targets))
-            temp_of = dict(zip(targets, temps))
+    per_map = []
+    for r in requests:
+        bt = Path(out_dir) / f"{r.name or r.job.stem()}.bt"
+        extra = ([bt.with_suffix(".ot")] if r.write_ot else []) + ([Path(r.rrd)] if r.rrd is not None else [])
+        per_map.append((bt, [bt] + extra + [bt.with_suffix(".json")]))
+    # one publication for every map's files: all of them or (a build or a rename failing) none
+    with atomic_outputs(*[t for _, targets in per_map for t in targets]) as all_temps:
+        maps, outputs, temps = [], [], iter(all_temps)
+        for r, (bt, targets) in zip(requests, per_map):
+            temp_of = {t: next(temps) for t in targets}
             observers = list(r.observers)
             if r.rrd is not None:
                 observers = [DiskSpaceGuard(Path(r.rrd))] + observers + [r.logger(temp_of[Path(r.rrd)])]
