@@ -855,11 +855,11 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
                   has_end: np.ndarray, scale: np.ndarray, probs: np.ndarray, p_beyond: np.ndarray,
                   edges: np.ndarray, hit: float, miss: float, resolution: float, lo: np.ndarray,
                   strides: np.ndarray, tree_max_val: int, box_size: int, min_update: float = 0.0,
-                  dense: bool = True, free_threshold: float | None = None,
-                  ray_ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  dense: bool = True, free_threshold: float | None = None, *,
+                  ray_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Run ``mm_ray_weights``: (linear box indices, float32 log-odds updates) of the distribution-weighted
     rays, one entry per distinct cell (rays combined: largest positive update, else most negative).
-    Rays with the same ``ray_ids`` (int64 (N,); None: the end key's box index) share one walk, so they must
+    Rays with the same ``ray_ids`` (int64 (N,)) share one walk, so they must
     have the same end point and ``has_end`` (in :func:`distribution_update`: the same far cell, whose centre
     and its cut at the range limit are the ray's end).
     dense=True accumulates in a float32 buffer over the whole box (reused across frames; on two threads
@@ -880,7 +880,7 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
                 pr=np.ascontiguousarray(probs, dtype=np.float32), pb=np.ascontiguousarray(p_beyond, dtype=np.float64),
                 ed=np.ascontiguousarray(edges, dtype=np.float64))
     n = len(rays["e"])
-    ids = (rays["ke"] - c["lo"][None, :]) @ c["st"] if ray_ids is None else np.asarray(ray_ids, dtype=np.int64)
+    ids = np.asarray(ray_ids, dtype=np.int64)
     order = np.argsort(ids, kind="stable")
     srt = ids[order]
     groups = np.flatnonzero(np.r_[True, srt[1:] != srt[:-1]]) if n else np.zeros(0, np.int64)
