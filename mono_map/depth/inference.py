@@ -7,6 +7,7 @@ bilinearly up-sampled to the full input resolution.
 
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,6 +68,24 @@ def bilinear_taps(n_in: int, n_out: int, step: int = 1) -> tuple[torch.Tensor, t
     i0 = src.long()
     i1 = torch.clamp(i0 + 1, max=n_in - 1)
     return i0, i1, src - i0
+
+
+@functools.lru_cache(maxsize=16)
+def interp_matrix(n_low: int, n_net: int, n_crop: int, n_out: int, step: int) -> torch.Tensor:
+    """The 1-D map of :meth:`DepthPredictor.to_image` as one float32 matrix (ceil(n_out / step) × n_low):
+    bilinear n_low -> n_net, crop to the first n_crop, bilinear n_crop -> n_out (skipped if equal), sampled at
+    outputs 0, step, 2·step, ... (computed in float64; ≤ 3 non-zeros per row for 4× up-sampling)."""
+    def taps(n_in, n_o, s):
+        i0, i1, w = bilinear_taps(n_in, n_o, s)
+        m = torch.zeros(len(i0), n_in, dtype=torch.float64)
+        r = torch.arange(len(i0))
+        m[r, i0] += 1 - w.double()
+        m[r, i1] += w.double()
+        return m
+
+    first = taps(n_low, n_net, 1)[:n_crop]
+    second = taps(n_crop, n_out, step) if n_crop != n_out else torch.eye(n_crop, dtype=torch.float64)[::step]
+    return (second @ first).float()
 
 
 def default_checkpoint(head: str = "binary") -> Path:
@@ -228,11 +247,18 @@ class DepthPredictor:
     def to_grid(self, t: torch.Tensor, geom: tuple, step: int) -> torch.Tensor:
         """(B,C,h',w') maps at network resolution -> (B, ceil(h/step), ceil(w/step), C), channels last and
         contiguous: :meth:`to_image`'s bilinear up-sampling evaluated only at the image pixels [::step, ::step]
-        (the same interpolation; float32 rounding may differ in the last bit)."""
+        (the same interpolation; float32 rounding may differ in the last bits, ~2e-7)."""
         (H, W), (fh, fw), (h, w), low = geom
+        if low:  # both up-samplings as two small matrix products (3× faster than the two interpolations)
+            B, C, hl, wl = t.shape
+            rows, cols = interp_matrix(hl, H, fh, h, step), interp_matrix(wl, W, fw, w, step)
+            out = torch.empty(B, rows.shape[0], cols.shape[0], C)
+            for b in range(B):
+                x = t[b].permute(2, 1, 0).reshape(wl, hl * C)                      # [col, row·C + c]
+                y = (cols @ x).view(-1, hl, C).permute(1, 0, 2).reshape(hl, -1)    # [row, out col·C + c]
+                torch.mm(rows, y, out=out[b].view(rows.shape[0], -1))
+            return out
         t = t.contiguous(memory_format=torch.channels_last)
-        if low:
-            t = F.interpolate(t, size=(H, W), mode="bilinear", align_corners=False)
         t = t[..., :fh, :fw].permute(0, 2, 3, 1)              # (B, fh, fw, C), a view of channels-last memory
         if (fh, fw) == (h, w):
             return t[:, ::step, ::step].contiguous()
