@@ -579,19 +579,23 @@ def test_compiled_ray_distributions_match_the_numpy_formulas(monkeypatch):
     assert np.array_equal(mass, unconditional_mass(p, pb, 0.5))
 
 
-def test_distribution_checks_agree_compiled_and_numpy(monkeypatch):
+@pytest.mark.parametrize("n, k", [(300, 8), (9000, 11)])   # one call; two threads' halves, a bin remainder
+def test_distribution_checks_agree_compiled_and_numpy(monkeypatch, n, k):
     from mono_map.mapping import distribution, raycast_c
 
+    assert (n > 2 * raycast_c._PARALLEL_MIN_RAYS) == (n == 9000)
     rng = np.random.default_rng(9)
-    p = rng.dirichlet(np.ones(8), size=300).astype(np.float32) * 0.9
-    pb = rng.uniform(0, 0.1, 300)
+    p = rng.dirichlet(np.ones(k), size=n).astype(np.float32) * 0.9
+    pb = rng.uniform(0, 0.1, n)
     p[5, 2], p[9, 1], p[12, 3], pb[4] = np.nan, -0.25, -np.inf, np.inf
     p[11] *= 1.5
+    p[n - 7, k - 1], p[n - 3, 0] = -0.5, np.nan          # in the second half, the last / first bin
     compiled = distribution.row_stats(p, pb)
     monkeypatch.setattr(raycast_c, "load_kernel", lambda: None)
     numpy_ = distribution.row_stats(p, pb)
     assert compiled == pytest.approx(numpy_, rel=1e-9)
-    assert compiled["bad_p"] == 2 and compiled["neg_p"] == 1 and compiled["bad_b"] == 1 and compiled["n_over"] >= 1
+    assert compiled["bad_p"] == 3 and compiled["neg_p"] == 2 and compiled["bad_b"] == 1 and compiled["n_over"] >= 1
+    assert compiled["min_p"] == -0.5
 
 
 def test_oracle_probabilities_at_a_pixel_step_are_its_full_maps_there(tiny_root):

@@ -141,7 +141,9 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
     v, u = v * s, u * s
     pb = np.zeros(len(v)) if pb_img is None else np.clip(np.asarray(pb_img, dtype=np.float64)[v, u], 0.0, 1.0)
     grid = probs[:, ::s // ps, ::s // ps]          # the rays' pixels; a (H', W', K) array's view when ps == s
-    rows = np.moveaxis(grid, 0, -1)[sub]           # (N, K)
+    cl = np.moveaxis(grid, 0, -1)                  # (H', W', K)
+    rows = (np.compress(sub.ravel(), cl.reshape(-1, cl.shape[-1]), axis=0) if cl.flags.c_contiguous
+            else cl[sub])                           # (N, K); np.compress: ~2× faster than a boolean index
     if dcfg.bin_spread < 1.0:
         p, edges = narrow_bins(unconditional_mass(rows, pb, dcfg.temperature), edges, dcfg.bin_spread)
         fd = far_depth(p, pb, edges, dcfg.eps)

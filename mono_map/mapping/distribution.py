@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mono_map.errors import MonoMapError
-from mono_map.mapping.octree import TREE_MAX_VAL, coord_to_key, key_in_range, key_to_coord
+from mono_map.mapping.octree import TREE_MAX_VAL, coord_to_key, key_bounds, key_in_range, key_to_coord
 from mono_map.mapping.raycast import KeyBox, cut_at_range, norm_f32
 
 INTEGRATIONS = ("keep", "distribution")
@@ -351,10 +351,11 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
         scale = np.where(length > 0, np.asarray(far_depths, dtype=np.float64) / length, 0.0)
     ends, inside = cut_at_range(centres, origin32, max_range)
     end_keys = coord_to_key(ends, res)
-    box = KeyBox(np.minimum(end_keys.min(axis=0), key_origin), np.maximum(end_keys.max(axis=0), key_origin))
+    end_lo, end_hi = key_bounds(end_keys)
+    box = KeyBox(np.minimum(end_lo, key_origin), np.maximum(end_hi, key_origin))
     # the kernel's bound on an update needs hit > 0 > miss (OctoMap's prob_hit > 0.5 > prob_miss)
     thr = snap_threshold(hit, miss, quantum, min_update) if snap_free and hit > 0 > miss else None
-    far_box = KeyBox(far_keys.min(axis=0), far_keys.max(axis=0))     # rays in one far cell share one walk
+    far_box = KeyBox(*key_bounds(far_keys))                          # rays in one far cell share one walk
     lin, dl = ray_weights_c(kernel, origin32, key_origin, ends, end_keys, inside, scale, probs, pb, edges,
                             hit, miss, res, box.lo, box.strides, TREE_MAX_VAL, box.size, min_update=min_update,
                             dense=box.size <= _DENSE_MAX_CELLS, free_threshold=thr,

@@ -21,8 +21,8 @@ import numpy as np
 
 from mono_map.config import OctoMapConfig
 from mono_map.errors import MonoMapError
-from mono_map.mapping.octree import (child_order_codes, key_to_coord, make_octree, octree_from_cells, ot_header,
-                                     sorted_unique, tree_from_stream)
+from mono_map.mapping.octree import (child_order_codes, key_bounds, key_to_coord, make_octree, octree_from_cells,
+                                     ot_header, sorted_unique, tree_from_stream)
 from mono_map.mapping.raycast import KeySets, compute_update
 
 
@@ -85,7 +85,7 @@ class LogOddsMirror:
             if bounds is not None and bounds[0] is not None:
                 blo, bhi = np.maximum(bounds[0], 0) >> self.SHIFT, np.minimum(bounds[1], 65535) >> self.SHIFT
             else:
-                blo, bhi = keys.min(axis=0) >> self.SHIFT, keys.max(axis=0) >> self.SHIFT
+                blo, bhi = (b >> self.SHIFT for b in key_bounds(keys))
             self._grow_table(blo, bhi)
         else:
             blocks = keys >> self.SHIFT
@@ -139,7 +139,7 @@ class LogOddsMirror:
         if bounds is not None and bounds[0] is not None:
             blo, bhi = np.maximum(bounds[0], 0) >> self.SHIFT, np.minimum(bounds[1], 65535) >> self.SHIFT
         else:
-            blo, bhi = keys.min(axis=0) >> self.SHIFT, keys.max(axis=0) >> self.SHIFT
+            blo, bhi = (b >> self.SHIFT for b in key_bounds(keys))
         self._grow_table(blo, bhi)
         new_blocks = mirror_alloc_c(kernel, keys, self.table, self.table_lo, self.n_blocks)
         if len(new_blocks):
@@ -293,9 +293,10 @@ class MapIntegrator:
         t0 = time.perf_counter()
         neg, pos = upd.dl < 0, upd.dl > 0
         bounds = (upd.lo, upd.hi)
-        free_keys, occ_keys = upd.keys[neg], upd.keys[pos]
-        n_free, freed = self._apply(free_keys, upd.dl[neg], bounds=bounds)
-        n_occ, became = self._apply(occ_keys, upd.dl[pos], bounds=bounds)
+        # np.compress: 4× faster than boolean indexing of (N, 3) rows (~440 k cells a frame, nearly all free)
+        free_keys, occ_keys = np.compress(neg, upd.keys, axis=0), np.compress(pos, upd.keys, axis=0)
+        n_free, freed = self._apply(free_keys, np.compress(neg, upd.dl), bounds=bounds)
+        n_occ, became = self._apply(occ_keys, np.compress(pos, upd.dl), bounds=bounds)
         timings = {"mirror_s": time.perf_counter() - t0}
         if self.sync_every and self.frames % self.sync_every == 0:
             timings["sync_s"] = self.sync()
