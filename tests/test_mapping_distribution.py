@@ -552,6 +552,25 @@ def test_skipping_surely_free_cells_gives_the_same_snapped_updates(max_range, mi
     assert snapped[0] == MISS and snapped[1] == 0 and thr <= -0.05      # the largest value that snaps to a miss
 
 
+def test_the_checks_row_mass_is_the_kernels_own_sum(monkeypatch):
+    """distribution_update hands the check's per-row sums to the kernel: the same bits as the kernel summing
+    each ray's bins itself (bin order, float64), so the updates are identical."""
+    from mono_map.mapping import raycast_c
+    from mono_map.mapping.distribution import row_stats
+
+    origin, far, fd, probs, pb, edges = street_rays(1)[0]
+    mass = np.empty(len(probs))
+    row_stats(probs, pb, mass)
+    assert np.array_equal(mass, np.cumsum(probs.astype(np.float64), axis=1)[:, -1])   # sequential, bin order
+    given = distribution_update(origin, far, fd, probs, pb, edges, 0.2, HIT, MISS, quantum=0.2, snap_free=True)
+    plain = raycast_c.ray_weights_c
+    monkeypatch.setattr(raycast_c, "ray_weights_c", lambda *a, **k: plain(*a, **{**k, "mass": None}))
+    summed = distribution_update(origin, far, fd, probs, pb, edges, 0.2, HIT, MISS, quantum=0.2, snap_free=True)
+    a, b = np.lexsort(given.keys.T), np.lexsort(summed.keys.T)      # two threads: cells in either order
+    assert len(given.dl) > 20_000 and (given.dl > 0).any()
+    assert np.array_equal(given.keys[a], summed.keys[b]) and np.array_equal(given.dl[a], summed.dl[b])
+
+
 def test_compiled_ray_distributions_match_the_numpy_formulas(monkeypatch):
     from mono_map.mapping.distribution import ray_distributions, unconditional_mass
 

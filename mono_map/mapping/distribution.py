@@ -98,10 +98,12 @@ def check_distribution_config(cfg: DistributionConfig) -> DistributionConfig:
 
 
 def check_distribution(probs: np.ndarray, p_beyond: np.ndarray | None, edges: np.ndarray,
-                       what: str = "distribution") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       what: str = "distribution", mass: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate and normalise the types: (probs float32 (N, K), p_beyond float64 (N,), edges float64
     (K+1,) or (N, K+1)). MonoMapError (one line naming ``what``) for NaN/inf, negative values, a
-    total above 1, or edges that are not finite, non-negative and non-decreasing."""
+    total above 1, or edges that are not finite, non-negative and non-decreasing. ``mass`` (float64 (N,)):
+    filled with each row's sum of probs in bin order (a by-product of the check)."""
     probs = np.asarray(probs)
     if probs.ndim != 2:
         raise MonoMapError(f"{what}: probabilities must be (N pixels, K bins), got shape {probs.shape}")
@@ -115,7 +117,7 @@ def check_distribution(probs: np.ndarray, p_beyond: np.ndarray | None, edges: np
     if not np.isfinite(edges).all() or (edges < 0).any() or (np.diff(edges, axis=-1) < 0).any():
         raise MonoMapError(f"{what}: bin edges must be finite, non-negative and non-decreasing (metres)")
     probs = np.ascontiguousarray(probs, dtype=np.float32)
-    st = row_stats(probs, pb)
+    st = row_stats(probs, pb, mass)
     for name, bad, neg, low in (("probabilities", st["bad_p"], st["neg_p"], st["min_p"]),
                                 ("p_beyond", st["bad_b"], st["neg_b"], st["min_b"])):
         if bad:
@@ -128,15 +130,17 @@ def check_distribution(probs: np.ndarray, p_beyond: np.ndarray | None, edges: np
     return probs, pb, edges
 
 
-def row_stats(probs: np.ndarray, pb: np.ndarray) -> dict:
+def row_stats(probs: np.ndarray, pb: np.ndarray, mass: np.ndarray | None = None) -> dict:
     """Counts of non-finite and negative values, minima, the largest row total and the rows above 1 + tol
-    (compiled: one pass; numpy otherwise)."""
+    (compiled: one pass; numpy otherwise); ``mass`` (float64 (N,)): filled with the rows' sums of finite probs."""
     from mono_map.mapping.raycast_c import check_rows_c, load_kernel
 
     kernel = load_kernel()
     if kernel is not None:
-        return check_rows_c(kernel, probs, pb, 1 + _SUM_TOL)
+        return check_rows_c(kernel, probs, pb, 1 + _SUM_TOL, mass)
     fin_p, fin_b = np.isfinite(probs), np.isfinite(pb)
+    if mass is not None:
+        mass[:] = np.where(fin_p, probs, 0).sum(axis=1, dtype=np.float64)
     total = np.where(fin_p, probs, 0).sum(axis=1, dtype=np.float64) + np.where(fin_b, pb, 0)
     return {"bad_p": int((~fin_p).sum()), "neg_p": int(((probs < 0) & fin_p).sum()),   # finite ones, as compiled
             "min_p": float(probs[fin_p].min()) if fin_p.any() else 0.0,
@@ -324,7 +328,8 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
     """
     from mono_map.mapping.raycast_c import load_kernel, ray_weights_c
 
-    probs, pb, edges = check_distribution(probs, p_beyond, edges)
+    mass = np.empty(len(probs) if np.ndim(probs) == 2 else 0)   # the rays' sums of probs: the check's by-product
+    probs, pb, edges = check_distribution(probs, p_beyond, edges, mass=mass)
     kernel = load_kernel()
     if kernel is None:
         raise MonoMapError("--integrate distribution: needs the compiled ray kernel (a C compiler 'cc'; "
@@ -359,7 +364,7 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
     lin, dl = ray_weights_c(kernel, origin32, key_origin, ends, end_keys, inside, scale, probs, pb, edges,
                             hit, miss, res, box.lo, box.strides, TREE_MAX_VAL, box.size, min_update=min_update,
                             dense=box.size <= _DENSE_MAX_CELLS, free_threshold=thr,
-                            ray_ids=far_box.linear(far_keys))
+                            ray_ids=far_box.linear(far_keys), mass=mass)
     if quantum > 0 or snap_free:
         dl = quantise_updates(dl, hit, miss, quantum, snap_free)
         kept = dl != 0

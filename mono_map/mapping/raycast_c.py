@@ -198,9 +198,10 @@ void mm_ray_mass(const float *q, const double *p_beyond, int64_t n, int64_t K, d
 
 /* Validation sums of n distributions (distribution.check_distribution): counts of non-finite and of negative
    values in probs (n x K) and p_beyond (n), their minima, and the largest row total sum(probs) + p_beyond.
-   stats: [bad_p, neg_p, min_p, bad_b, neg_b, min_b, max_total]; counts over row totals above tol in *n_over. */
+   stats: [bad_p, neg_p, min_p, bad_b, neg_b, min_b, max_total]; counts over row totals above tol in *n_over.
+   row_mass (n, or NULL): each row's sum of its finite probs in bin order (mm_ray_weights' per-ray mass). */
 void mm_check_rows(const float *probs, const double *p_beyond, int64_t n, int64_t K, double tol, double *stats,
-                   int64_t *n_over)
+                   int64_t *n_over, double *row_mass)
 {
     int64_t bad_p = 0, neg_p = 0, bad_b = 0, neg_b = 0, over = 0;
     double min_p = DBL_MAX, min_b = DBL_MAX, max_total = -DBL_MAX;
@@ -214,6 +215,7 @@ void mm_check_rows(const float *probs, const double *p_beyond, int64_t n, int64_
             if ((double) x < min_p) min_p = (double) x;
             total += (double) x;
         }
+        if (row_mass) row_mass[i] = total;
         double b = p_beyond[i];
         if (!isfinite(b)) ++bad_b;
         else {
@@ -278,7 +280,7 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
                        const float *probs, const double *p_beyond, const double *edges, int64_t edge_stride,
                        int64_t K, float hit, float miss, float min_update, double res, const int64_t *lo, const int64_t *strides,
                        int64_t tree_max_val, float *acc, int64_t acc_size, int64_t *out, float *out_dl,
-                       int64_t cap, int snap, float thr)
+                       int64_t cap, int snap, float thr, const double *ray_mass)
 {
     int64_t off = 0, ret = 0, max_group = 0;
     for (int64_t g = 0; g < n_groups; ++g)
@@ -302,8 +304,9 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
             r->e = edges + edge_stride * i;
             r->sc = scale[i];
             r->pb = p_beyond[i];
-            double mass = 0.0;
-            for (int64_t b = 0; b < K; ++b) mass += (double) r->p[b];
+            double mass = 0.0;      /* the sum of its bins in bin order (given by the caller, or summed here) */
+            if (ray_mass) mass = ray_mass[i];
+            else for (int64_t b = 0; b < K; ++b) mass += (double) r->p[b];
             r->mass = mass;
             r->k = 0;
             r->cum = 0.0;
@@ -738,7 +741,7 @@ def load_kernel():
         wfn = lib.mm_ray_weights
         i64, f32, f64 = ctypes.c_int64, ctypes.c_float, ctypes.c_double
         wfn.argtypes = [p, p, p, p, p, p, p, p, i64, p, p, p, i64, i64, f32, f32, f32, f64, p, p, i64, p, i64, p, p,
-                        i64, ctypes.c_int, f32]
+                        i64, ctypes.c_int, f32, p]
         wfn.restype = ctypes.c_int64
         fn.weights = wfn
         ffn = lib.mm_far_depth
@@ -755,7 +758,7 @@ def load_kernel():
                            ("ray_mass", [p, p, i64, i64, f64, p, i64, f64, p, p]),
                            ("acc_merge", [p, i64, p, p, p]),
                            ("acc_take", [p, i64, p, p]),
-                           ("check_rows", [p, p, i64, i64, f64, p, p])):
+                           ("check_rows", [p, p, i64, i64, f64, p, p, p])):
             cfn = getattr(lib, "mm_" + name)
             cfn.argtypes = args
             cfn.restype = None if name in ("box_keys", "ray_mass", "check_rows", "acc_take") else i64
@@ -856,7 +859,7 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
                   edges: np.ndarray, hit: float, miss: float, resolution: float, lo: np.ndarray,
                   strides: np.ndarray, tree_max_val: int, box_size: int, min_update: float = 0.0,
                   dense: bool = True, free_threshold: float | None = None, *,
-                  ray_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                  ray_ids: np.ndarray, mass: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Run ``mm_ray_weights``: (linear box indices, float32 log-odds updates) of the distribution-weighted
     rays, one entry per distinct cell (rays combined: largest positive update, else most negative).
     Rays with the same ``ray_ids`` (int64 (N,)) share one walk, so they must
@@ -869,7 +872,8 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
     −min_update; None: off): a cell where some ray's update is ≤ it and no ray's is positive may come out as
     exactly ``miss`` instead of the most negative update — for callers that snap such cells to a whole miss
     anyway (:func:`mono_map.mapping.distribution.snap_threshold`); the kernel then skips evaluating rays in
-    the cells where their update is surely ≤ it (most of a ray's length)."""
+    the cells where their update is surely ≤ it (most of a ray's length). ``mass``: each ray's sum of its
+    probs in bin order, float64 (N,), as :func:`check_rows_c` gives it (None: summed in the kernel)."""
     c = dict(o=np.ascontiguousarray(origin32, dtype=np.float32), ko=np.ascontiguousarray(key_origin, dtype=np.int64),
              lo=np.ascontiguousarray(lo, dtype=np.int64), st=np.ascontiguousarray(strides, dtype=np.int64),
              hit=float(hit), miss=float(miss), min_update=float(min_update), res=float(resolution),
@@ -878,7 +882,8 @@ def ray_weights_c(fn, origin32: np.ndarray, key_origin: np.ndarray, ends32: np.n
     rays = dict(e=np.ascontiguousarray(ends32, dtype=np.float32), ke=np.ascontiguousarray(key_ends, dtype=np.int64),
                 he=np.ascontiguousarray(has_end, dtype=np.uint8), sc=np.ascontiguousarray(scale, dtype=np.float64),
                 pr=np.ascontiguousarray(probs, dtype=np.float32), pb=np.ascontiguousarray(p_beyond, dtype=np.float64),
-                ed=np.ascontiguousarray(edges, dtype=np.float64))
+                ed=np.ascontiguousarray(edges, dtype=np.float64),
+                ms=None if mass is None else np.ascontiguousarray(mass, dtype=np.float64))
     n = len(rays["e"])
     ids = np.asarray(ray_ids, dtype=np.int64)
     order = np.argsort(ids, kind="stable")
@@ -968,7 +973,8 @@ def _weights_run(fn, c: dict, r: dict, order: np.ndarray, starts: np.ndarray, st
                            r["pb"].ctypes.data, r["ed"].ctypes.data, edge_stride, k, c["hit"], c["miss"],
                            c["min_update"], c["res"], c["lo"].ctypes.data, c["st"].ctypes.data, c["tmv"],
                            None if acc is None else acc.ctypes.data, c["box_size"], out.ctypes.data,
-                           None if out_dl is None else out_dl.ctypes.data, len(out), c["snap"], c["thr"]))
+                           None if out_dl is None else out_dl.ctypes.data, len(out), c["snap"], c["thr"],
+                           None if r["ms"] is None else r["ms"].ctypes.data))
         if n == -2:
             raise AssertionError("ray left its bounding box")  # the margin covers DDA overshoot
         if n == -3:
@@ -1047,8 +1053,10 @@ def _on_two_threads(rows, n: int) -> None:
     future.result()
 
 
-def check_rows_c(fn, probs: np.ndarray, p_beyond: np.ndarray, tol: float) -> dict:
-    """``mm_check_rows``: counts and extremes of N distributions' values (see distribution.check_distribution)."""
+def check_rows_c(fn, probs: np.ndarray, p_beyond: np.ndarray, tol: float, mass: np.ndarray | None = None) -> dict:
+    """``mm_check_rows``: counts and extremes of N distributions' values (see distribution.check_distribution);
+    ``mass`` (float64 (N,), C-contiguous): filled with each row's sum of finite probs in bin order."""
+    assert mass is None or (mass.dtype == np.float64 and mass.flags.c_contiguous and mass.shape == (len(probs),))
     pr = np.ascontiguousarray(probs, dtype=np.float32)
     pb = np.ascontiguousarray(p_beyond, dtype=np.float64)
     k = pr.shape[1] if pr.ndim == 2 else 0
@@ -1060,7 +1068,7 @@ def check_rows_c(fn, probs: np.ndarray, p_beyond: np.ndarray, tol: float) -> dic
         h = int(a > 0)
         used[h] = True
         fn.check_rows(pr.ctypes.data + 4 * k * a, pb.ctypes.data + 8 * a, b - a, k, float(tol),
-                      stats[h].ctypes.data, over[h:].ctypes.data)
+                      stats[h].ctypes.data, over[h:].ctypes.data, None if mass is None else mass.ctypes.data + 8 * a)
 
     _on_two_threads(rows, len(pr))
     st = stats[[h for h in (0, 1) if used[h]]]
