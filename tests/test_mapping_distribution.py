@@ -571,6 +571,26 @@ def test_the_checks_row_mass_is_the_kernels_own_sum(monkeypatch):
     assert np.array_equal(given.keys[a], summed.keys[b]) and np.array_equal(given.dl[a], summed.dl[b])
 
 
+@pytest.mark.parametrize("n", [300, 9000])                    # one call; two threads' halves
+def test_ray_distributions_of_selected_rows_are_those_of_the_gathered_rows(monkeypatch, n):
+    from mono_map.mapping import raycast_c
+    from mono_map.mapping.distribution import ray_distributions
+
+    rng = np.random.default_rng(12)
+    edges = np.geomspace(1.0, 80.0, 17)
+    grid = (rng.dirichlet(np.full(16, 0.3), size=2 * n) * 0.9).astype(np.float32)
+    rows = np.sort(rng.choice(2 * n, n, replace=False))
+    pb = rng.uniform(0, 0.1, n)
+    want = ray_distributions(grid[rows], pb, 0.5, edges, 0.4)
+    got = ray_distributions(grid, pb, 0.5, edges, 0.4, rows=rows)
+    assert np.array_equal(want[0], got[0]) and np.array_equal(want[1], got[1])
+    with pytest.raises(IndexError):
+        ray_distributions(grid, pb[:2], 0.5, edges, 0.4, rows=np.array([0, 2 * n]))
+    monkeypatch.setattr(raycast_c, "load_kernel", lambda: None)            # the numpy formulas: the same rows
+    slow = ray_distributions(grid, pb, 0.5, edges, 0.4, rows=rows)
+    np.testing.assert_allclose(slow[0], got[0], rtol=1e-6, atol=1e-9)
+
+
 def test_compiled_ray_distributions_match_the_numpy_formulas(monkeypatch):
     from mono_map.mapping.distribution import ray_distributions, unconditional_mass
 

@@ -142,13 +142,14 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
     pb = np.zeros(len(v)) if pb_img is None else np.clip(np.asarray(pb_img, dtype=np.float64)[v, u], 0.0, 1.0)
     grid = probs[:, ::s // ps, ::s // ps]          # the rays' pixels; a (H', W', K) array's view when ps == s
     cl = np.moveaxis(grid, 0, -1)                  # (H', W', K)
-    rows = (np.compress(sub.ravel(), cl.reshape(-1, cl.shape[-1]), axis=0) if cl.flags.c_contiguous
-            else cl[sub])                           # (N, K); np.compress: ~2× faster than a boolean index
     if dcfg.bin_spread < 1.0:
-        p, edges = narrow_bins(unconditional_mass(rows, pb, dcfg.temperature), edges, dcfg.bin_spread)
+        p, edges = narrow_bins(unconditional_mass(cl[sub], pb, dcfg.temperature), edges, dcfg.bin_spread)
         fd = far_depth(p, pb, edges, dcfg.eps)
+    elif cl.flags.c_contiguous:                    # the rays' rows read in place (no gathered copy)
+        p, fd = ray_distributions(cl.reshape(-1, cl.shape[-1]), pb, dcfg.temperature, edges, dcfg.eps,
+                                  rows=np.flatnonzero(sub))
     else:
-        p, fd = ray_distributions(rows, pb, dcfg.temperature, edges, dcfg.eps, overwrite=True)
+        p, fd = ray_distributions(cl[sub], pb, dcfg.temperature, edges, dcfg.eps, overwrite=True)
     upd = distribution_update(camera_origin(T_world_cam2), pixel_points_to_world(u, v, fd, K, T_world_cam2), fd,
                               p, pb, edges, integrator.cfg.resolution, integrator.hit, integrator.miss,
                               integrator.cfg.max_range, dcfg.min_update, dcfg.quantum, dcfg.snap_free)

@@ -179,19 +179,22 @@ def unconditional_mass(probs: np.ndarray, p_beyond: np.ndarray, temperature: flo
 
 
 def ray_distributions(probs: np.ndarray, p_beyond: np.ndarray, temperature: float, edges: np.ndarray,
-                      eps: float, overwrite: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                      eps: float, overwrite: bool = False, rows: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """The rays' (float32 (N, K) unconditional bin mass, float64 (N,) far depths in metres) from conditional bin
     probabilities ``probs`` (N, K) and ``p_beyond`` (N,): :func:`unconditional_mass` at ``temperature``, then
     :func:`far_depth` at ``eps`` — compiled in one pass when the kernel is there (the same formulas; the row
     sums in another order, so the last float bit may differ). ``overwrite``: ``probs`` (the caller's scratch)
-    may be overwritten with the result."""
+    may be overwritten with the result. ``rows`` (int (N,)): the rays are these rows of ``probs`` (M, K)
+    (the compiled pass reads them in place instead of a gathered copy)."""
     from mono_map.mapping.raycast_c import load_kernel, ray_mass_c
 
     kernel = load_kernel()
     if kernel is None:
-        p = unconditional_mass(probs, p_beyond, temperature)
+        q = probs if rows is None else np.asarray(probs)[np.asarray(rows)]
+        p = unconditional_mass(q, p_beyond, temperature)
         return p, far_depth(p, p_beyond, edges, eps)
-    return ray_mass_c(kernel, probs, p_beyond, 1.0 / temperature, edges, eps, overwrite)
+    return ray_mass_c(kernel, probs, p_beyond, 1.0 / temperature, edges, eps, overwrite, rows)
 
 
 def narrow_bins(probs: np.ndarray, edges: np.ndarray, spread: float) -> tuple[np.ndarray, np.ndarray]:

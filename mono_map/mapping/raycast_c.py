@@ -168,12 +168,13 @@ void mm_far_depth(const float *probs, const double *p_beyond, const double *edge
 /* Rays' distributions in one pass (mono_map/mapping/distribution.py, ray_distributions): conditional bin
    probabilities q (n x K) at temperature T (inv_t = 1/T: q^(1/T) rescaled to the row's mass, rounded to
    float32, as apply_temperature), times (1 - p_beyond) (float32, as unconditional_mass) into out (n x K; may
-   be q itself: element-wise), and each row's far depth (far_depth_one) into far. */
+   be q itself: element-wise), and each row's far depth (far_depth_one) into far. idx (n, or NULL): output row
+   i reads q's row idx[i] (a gather without an intermediate copy). */
 void mm_ray_mass(const float *q, const double *p_beyond, int64_t n, int64_t K, double inv_t, const double *edges,
-                 int64_t edge_stride, double eps, float *out, double *far)
+                 int64_t edge_stride, double eps, float *out, double *far, const int64_t *idx)
 {
     for (int64_t i = 0; i < n; ++i) {
-        const float *p = q + K * i;
+        const float *p = q + K * (idx ? idx[i] : i);
         float *o = out + K * i;
         const double keep = 1.0 - p_beyond[i];
         if (inv_t == 1.0) {
@@ -755,7 +756,7 @@ def load_kernel():
                            ("mirror_apply", [p, i64, p, f32, p, p, p, p, p, f32, f32, f32, p, p]),
                            ("ot_nodes", [p, p, p, i64, p, i64, p, p, p, p, p, p]),
                            ("ot_leaves", [p, i64, i64, p, p, p]),
-                           ("ray_mass", [p, p, i64, i64, f64, p, i64, f64, p, p]),
+                           ("ray_mass", [p, p, i64, i64, f64, p, i64, f64, p, p, p]),
                            ("acc_merge", [p, i64, p, p, p]),
                            ("acc_take", [p, i64, p, p]),
                            ("check_rows", [p, p, i64, i64, f64, p, p, p])):
@@ -1022,23 +1023,30 @@ def far_depth_c(fn, probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, 
 
 
 def ray_mass_c(fn, probs: np.ndarray, p_beyond: np.ndarray, inv_temperature: float, edges: np.ndarray,
-               eps: float, overwrite: bool = False) -> tuple[np.ndarray, np.ndarray]:
+               eps: float, overwrite: bool = False, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``mm_ray_mass``: (float32 (N, K) unconditional bin mass, float64 (N,) far depths) of conditional bin
     probabilities (N, K) at temperature 1 / inv_temperature (see distribution.ray_distributions);
-    ``overwrite``: the mass is written over ``probs`` when it is a C-contiguous float32 array."""
+    ``overwrite``: the mass is written over ``probs`` when it is a C-contiguous float32 array; ``rows``
+    (int64 (N,)): the rays are these rows of ``probs`` (M, K) (read in place, no gathered copy; not with
+    overwrite); p_beyond and per-ray edges are then per ray."""
     pr = np.ascontiguousarray(probs, dtype=np.float32)
     pb = np.ascontiguousarray(p_beyond, dtype=np.float64)
     ed = np.ascontiguousarray(edges, dtype=np.float64)
-    n, k = pr.shape
-    out = pr if overwrite else np.empty((n, k), dtype=np.float32)   # element-wise, so in place is safe
+    idx = None if rows is None else np.ascontiguousarray(rows, dtype=np.int64)
+    k = pr.shape[1]
+    n = len(pr) if idx is None else len(idx)
+    if idx is not None and n and (idx.min() < 0 or idx.max() >= len(pr)):
+        raise IndexError("ray_mass_c: row index out of range")
+    out = pr if overwrite and idx is None else np.empty((n, k), dtype=np.float32)   # element-wise: in place is safe
     far = np.empty(n, dtype=np.float64)
     es = 0 if ed.ndim == 1 else ed.shape[1]
 
-    def rows(a: int, b: int) -> None:      # rows a..b-1 (row by row: halves on two threads give the same bits)
-        fn.ray_mass(pr.ctypes.data + 4 * k * a, pb.ctypes.data + 8 * a, b - a, k, float(inv_temperature),
-                    ed.ctypes.data + 8 * es * a, es, float(eps), out.ctypes.data + 4 * k * a, far.ctypes.data + 8 * a)
+    def part(a: int, b: int) -> None:      # rays a..b-1 (row by row: halves on two threads give the same bits)
+        src, ix = (pr.ctypes.data + 4 * k * a, None) if idx is None else (pr.ctypes.data, idx.ctypes.data + 8 * a)
+        fn.ray_mass(src, pb.ctypes.data + 8 * a, b - a, k, float(inv_temperature), ed.ctypes.data + 8 * es * a, es,
+                    float(eps), out.ctypes.data + 4 * k * a, far.ctypes.data + 8 * a, ix)
 
-    _on_two_threads(rows, n)
+    _on_two_threads(part, n)
     return out, far
 
 
