@@ -1037,6 +1037,8 @@ def ray_mass_c(fn, probs: np.ndarray, p_beyond: np.ndarray, inv_temperature: flo
     n = len(pr) if idx is None else len(idx)
     if idx is not None and n and (idx.min() < 0 or idx.max() >= len(pr)):
         raise IndexError("ray_mass_c: row index out of range")
+    if len(pb) != n or (ed.ndim == 2 and len(ed) != n):
+        raise ValueError(f"ray_mass_c: {n} rays but {len(pb)} p_beyond values / edges of shape {ed.shape}")
     out = pr if overwrite and idx is None else np.empty((n, k), dtype=np.float32)   # element-wise: in place is safe
     far = np.empty(n, dtype=np.float64)
     es = 0 if ed.ndim == 1 else ed.shape[1]
