@@ -139,9 +139,10 @@ def row_stats(probs: np.ndarray, pb: np.ndarray, mass: np.ndarray | None = None)
     if kernel is not None:
         return check_rows_c(kernel, probs, pb, 1 + _SUM_TOL, mass)
     fin_p, fin_b = np.isfinite(probs), np.isfinite(pb)
+    sums = np.where(fin_p, probs, 0).sum(axis=1, dtype=np.float64)
     if mass is not None:
-        mass[:] = np.where(fin_p, probs, 0).sum(axis=1, dtype=np.float64)
-    total = np.where(fin_p, probs, 0).sum(axis=1, dtype=np.float64) + np.where(fin_b, pb, 0)
+        mass[:] = sums
+    total = sums + np.where(fin_b, pb, 0)
     return {"bad_p": int((~fin_p).sum()), "neg_p": int(((probs < 0) & fin_p).sum()),   # finite ones, as compiled
             "min_p": float(probs[fin_p].min()) if fin_p.any() else 0.0,
             "bad_b": int((~fin_b).sum()), "neg_b": int(((pb < 0) & fin_b).sum()),

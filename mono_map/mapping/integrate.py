@@ -76,17 +76,21 @@ class LogOddsMirror:
         local = ((keys[:, 0] & 7) << 6) | ((keys[:, 1] & 7) << 3) | (keys[:, 2] & 7)
         return flat, local
 
+    def _grow_for(self, keys: np.ndarray, bounds: tuple | None) -> None:
+        """Grow the block table to cover (N ≥ 1, 3) ``keys``, whose (lo, hi) key bounds may be given."""
+        if bounds is not None and bounds[0] is not None:
+            blo, bhi = np.maximum(bounds[0], 0) >> self.SHIFT, np.minimum(bounds[1], 65535) >> self.SHIFT
+        else:
+            blo, bhi = (b >> self.SHIFT for b in key_bounds(keys))
+        self._grow_table(blo, bhi)
+
     def index(self, keys: np.ndarray, create: bool, bounds: tuple | None = None) -> np.ndarray:
         """Pool indices of keys ((N, 3) int64); with create=False, -1 where the block is absent.
         bounds: optional (lo, hi) key bounds of ``keys`` (saves a pass)."""
         if len(keys) == 0:
             return np.zeros(0, dtype=np.int64)
         if create:
-            if bounds is not None and bounds[0] is not None:
-                blo, bhi = np.maximum(bounds[0], 0) >> self.SHIFT, np.minimum(bounds[1], 65535) >> self.SHIFT
-            else:
-                blo, bhi = (b >> self.SHIFT for b in key_bounds(keys))
-            self._grow_table(blo, bhi)
+            self._grow_for(keys, bounds)
         else:
             blocks = keys >> self.SHIFT
             if self.table is None:
@@ -136,11 +140,7 @@ class LogOddsMirror:
         from mono_map.mapping.raycast_c import mirror_alloc_c, mirror_apply_c
 
         keys = np.ascontiguousarray(keys, dtype=np.int64)
-        if bounds is not None and bounds[0] is not None:
-            blo, bhi = np.maximum(bounds[0], 0) >> self.SHIFT, np.minimum(bounds[1], 65535) >> self.SHIFT
-        else:
-            blo, bhi = (b >> self.SHIFT for b in key_bounds(keys))
-        self._grow_table(blo, bhi)
+        self._grow_for(keys, bounds)
         new_blocks = mirror_alloc_c(kernel, keys, self.table, self.table_lo, self.n_blocks)
         if len(new_blocks):
             self._add_blocks(new_blocks)

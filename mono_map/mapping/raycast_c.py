@@ -1070,21 +1070,19 @@ def check_rows_c(fn, probs: np.ndarray, p_beyond: np.ndarray, tol: float, mass: 
     pr = np.ascontiguousarray(probs, dtype=np.float32)
     pb = np.ascontiguousarray(p_beyond, dtype=np.float64)
     k = pr.shape[1] if pr.ndim == 2 else 0
-    stats = np.empty((2, 7), dtype=np.float64)    # rows on two threads, each half its own stats
+    # rows on two threads, each half its own stats; a half not run keeps the neutral ones
+    stats = np.array([[0, 0, np.inf, 0, 0, np.inf, -np.inf]] * 2, dtype=np.float64)
     over = np.zeros(2, dtype=np.int64)
-    used = [True, False]
 
     def rows(a: int, b: int) -> None:
         h = int(a > 0)
-        used[h] = True
         fn.check_rows(pr.ctypes.data + 4 * k * a, pb.ctypes.data + 8 * a, b - a, k, float(tol),
                       stats[h].ctypes.data, over[h:].ctypes.data, None if mass is None else mass.ctypes.data + 8 * a)
 
     _on_two_threads(rows, len(pr))
-    st = stats[[h for h in (0, 1) if used[h]]]
     keys = ("bad_p", "neg_p", "min_p", "bad_b", "neg_b", "min_b", "max_total")
-    vals = [st[:, 0].sum(), st[:, 1].sum(), st[:, 2].min(), st[:, 3].sum(), st[:, 4].sum(), st[:, 5].min(),
-            st[:, 6].max()]
+    tot, low, high = stats.sum(axis=0), stats.min(axis=0), stats.max(axis=0)    # counts, minima, the max total
+    vals = [tot[0], tot[1], low[2], tot[3], tot[4], low[5], high[6]]
     return dict(zip(keys, (float(v) for v in vals)), n_over=int(over.sum()))
 
 
