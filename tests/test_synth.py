@@ -269,3 +269,29 @@ def test_cli_synth(tiny_root, capsys):
     assert "sequence tiny: 6 frames" in capsys.readouterr().err
     assert main(["synth", "--seq", "nope_xyz", "--data-root", str(tiny_root)]) == 2
     assert "no such recipe" in capsys.readouterr().err
+
+
+def test_frame_files_decode_to_exactly_what_was_rendered(tmp_path):
+    """The PNG settings (Huffman-only RGB, UP-filtered depth) are lossless: pixels, depths and the scan
+    come back bit for bit through the readers (OpenCV, the depth PNG reader)."""
+    import cv2
+
+    from mono_map.data.depth_png import decode_depth, encode_depth, read_depth_png
+    from mono_map.data.synth import writer
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
+    rgb[:10] = 128                                          # flat and noisy regions
+    depth = np.where(rng.random((37, 53)) < 0.2, 0.0, rng.uniform(1, 200, (37, 53))).astype(np.float32)
+    pts = rng.normal(size=(11, 4)).astype(np.float32)
+    for sub in ("image_2", "depth_2", "velodyne"):
+        (tmp_path / sub).mkdir()
+    writer.write_frame(tmp_path, 7, rgb, depth, pts)
+    paths = writer.frame_paths(tmp_path, 7)
+    assert np.array_equal(cv2.imread(str(paths["image"]))[..., ::-1], rgb)
+    stored = cv2.imread(str(paths["depth"]), cv2.IMREAD_UNCHANGED)
+    assert stored.dtype == np.uint16 and np.array_equal(stored, encode_depth(depth))
+    assert np.array_equal(read_depth_png(paths["depth"]), decode_depth(encode_depth(depth)))
+    assert np.array_equal(np.fromfile(paths["velodyne"], np.float32).reshape(-1, 4), pts)
+    with pytest.raises(ValueError, match="unknown kind"):
+        writer.png_params("jpeg")

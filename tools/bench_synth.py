@@ -2,12 +2,13 @@
 
     python tools/bench_synth.py --seq 00 --frames 40 --workers 2
     python tools/bench_synth.py --seq tiny --preview docs/images/synth_frame.png --frame 3
-    python tools/bench_synth.py --seq 00 --frames 20 --compare ~/.cache/mono-map/data/kitti   # same bytes?
+    python tools/bench_synth.py --seq 00 --frames 20 --compare ~/.cache/mono-map/data/kitti   # same frames?
 
 Generates into a temporary root (never touches ./data), reports end-to-end frames/s
 (town build + worker start-up included), the CPU seconds per frame of the process and its workers
 (less sensitive to other jobs than wall time), the per-stage split (wall and CPU) of single frames
-rendered in-process, and with --compare whether the frames are byte-identical to another root's.
+rendered in-process, and with --compare whether the frames are identical to another root's (decoded
+PNG pixels, scan bytes).
 """
 
 from __future__ import annotations
@@ -63,15 +64,26 @@ def cpu_seconds() -> float:
 
 
 def compare_frames(seq_a: Path, seq_b: Path, n: int) -> tuple[int, list[str]]:
-    """Byte-compare image_2 / depth_2 / velodyne of frames 0..n-1 of two sequence dirs: (#files, differing)."""
+    """Compare image_2 / depth_2 (decoded pixels: PNG settings may differ) and velodyne (bytes) of frames
+    0..n-1 of two sequence dirs: (#files, differing)."""
+    import cv2
+
     from mono_map.data.synth import writer
+
+    def same(a: Path, b: Path) -> bool:
+        if not b.is_file():
+            return False
+        if a.suffix != ".png":
+            return a.read_bytes() == b.read_bytes()
+        ia, ib = (cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in (a, b))
+        return ia is not None and ib is not None and ia.dtype == ib.dtype and np.array_equal(ia, ib)
 
     differ, n_files = [], 0
     for i in range(n):
         pa, pb = writer.frame_paths(seq_a, i), writer.frame_paths(seq_b, i)
         for kind in pa:
             n_files += 1
-            if not pb[kind].is_file() or pa[kind].read_bytes() != pb[kind].read_bytes():
+            if not same(pa[kind], pb[kind]):
                 differ.append(f"{pa[kind].parent.name}/{pa[kind].name}")
     return n_files, differ
 
@@ -125,7 +137,8 @@ def main() -> int:
     ap.add_argument("--frame", type=int, default=0)
     ap.add_argument("--keep", default=None, help="generate into this root instead of a temporary one")
     ap.add_argument("--compare", default=None,
-                    help="byte-compare the generated frames with the same frames under this data root")
+                    help="compare the generated frames (decoded PNG pixels, scan bytes) with the same frames "
+                         "under this data root")
     args = ap.parse_args()
 
     from mono_map.data.synth import generate_sequence, load_recipe
@@ -160,7 +173,7 @@ def main() -> int:
     if args.compare:
         n_files, differ = compare_frames(seq_dir, Path(args.compare) / "sequences" / recipe.name, n)
         print(f"compared {n_files} frame files with {args.compare}: {len(differ)} differ"
-              + (": " + ", ".join(differ[:10]) if differ else " (byte-identical)"))
+              + (": " + ", ".join(differ[:10]) if differ else " (same pixels and scans)"))
     if not args.keep:
         shutil.rmtree(root)
     return 0

@@ -22,7 +22,23 @@ from mono_map.paths import KITTI_ASSETS_DIR
 
 MARKER = "synth.json"
 PARTIAL_MARKER = ".synth_partial.json"      # present while a generation is under way / was interrupted
-PNG_LEVEL = 1
+
+
+# PNG encoder settings (lossless either way; measured on frames of 00, one thread, cv2 5.0): the noisy RGB
+# image gains nothing from zlib's string matching, so Huffman-only coding after the AVG filter writes it 2.5×
+# faster and 12 % smaller than zlib level 1 with adaptive filters (13.5 vs 34.1 ms, 0.77 vs 0.87 MB); the
+# smooth uint16 depth keeps zlib with the UP filter only (5.8 vs 10.2 ms, 0.15 vs 0.13 MB). The pixels
+# decode identically to before; only the files' bytes changed (tools/bench_synth.py --compare decodes).
+def png_params(kind: str) -> list[int]:
+    """cv2.imwrite parameters for an ``"image"`` (RGB) or ``"depth"`` (uint16) PNG."""
+    import cv2
+
+    if kind == "image":
+        return [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
+                cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_AVG]
+    if kind == "depth":
+        return [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
+    raise ValueError(f"png_params: unknown kind {kind!r}")
 
 
 def calib_text() -> str:
@@ -57,12 +73,11 @@ def write_frame(seq_dir: Path, i: int, rgb: np.ndarray, depth_m: np.ndarray, poi
     from mono_map.data.depth_png import encode_depth
 
     paths = frame_paths(seq_dir, i)
-    params = [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL]
     with atomic_path(paths["image"]) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1]), params):
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1]), png_params("image")):
             raise MonoMapError(f"{paths['image']}: could not write PNG")
     with atomic_path(paths["depth"]) as tmp:
-        if not cv2.imwrite(str(tmp), encode_depth(depth_m), params):
+        if not cv2.imwrite(str(tmp), encode_depth(depth_m), png_params("depth")):
             raise MonoMapError(f"{paths['depth']}: could not write depth PNG")
     with atomic_path(paths["velodyne"]) as tmp:
         np.ascontiguousarray(points, dtype=np.float32).tofile(tmp)
