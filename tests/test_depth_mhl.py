@@ -90,3 +90,45 @@ def test_bf16_inference_agrees_with_fp32(tmp_path):
 
     with pytest.raises(MonoMapError, match="precision"):
         DepthPredictor(net, precision="fp16")
+
+
+def _evaluate(head: str, tmp_path, **kw):
+    from mono_map.eval.depth_evaluation import evaluate_model
+
+    torch.manual_seed(0)
+    net = DepthNet(named_config("small", head=head, num_bins=16, beyond=True, **TINY, **kw)).eval()
+    rng = np.random.default_rng(1)
+    frames = [(f"f{i}", (rng.random((60, 120, 3)) * 255).astype(np.uint8), rng.uniform(2, 60, (60, 120)))
+              for i in range(2)]
+    return evaluate_model(DepthPredictor(net), frames, time_frames=1)
+
+
+def test_heads_without_uncertainty_say_so_and_mhl_counts_as_one_point_per_m(tmp_path):
+    """Regression and single-hypothesis heads rank nothing: their AUC cells read "no uncertainty" (not the
+    AUC of an arbitrary order); MHL-M is reported from its own M on and drawn as one line through the MHL
+    models in the Fig. 6 plot."""
+    from mono_map.eval.depth_evaluation import markdown_report
+    from mono_map.viz.plots import plot_hypotheses, plot_sparsification
+
+    res = {"binary": _evaluate("binary", tmp_path), "l2": _evaluate("l2", tmp_path),
+           "mhl-1": _evaluate("mhl", tmp_path, hypotheses=1), "mhl-3": _evaluate("mhl", tmp_path, hypotheses=3)}
+    assert [res[h]["has_uncertainty"] for h in res] == [True, False, False, True]
+    assert [res[h]["has_distribution"] for h in res] == [True, False, False, False]
+    assert [res[h]["n_hypotheses"] for h in res] == [None, None, 1, 3]
+    md = markdown_report(res, "t")
+
+    def rows(section: str) -> dict[str, list[str]]:
+        body = md.split(section, 1)[1].split("\n## ", 1)[0]
+        cells = ([c.strip() for c in line.strip().strip("|").split("|")] for line in body.splitlines()
+                 if line.startswith("| "))
+        return {c[0]: c[1:] for c in cells if c[0] in res}
+
+    auc = rows("## Uncertainty")
+    assert auc["l2"][:3] == auc["mhl-1"][:3] == ["no uncertainty"] * 3
+    assert auc["l2"][9:] == auc["mhl-1"][9:] == ["no uncertainty"] * 3    # std-log ranks nothing either
+    assert all("no uncertainty" not in auc[h] for h in ("binary", "mhl-3")) and auc["mhl-3"][9:] == ["no distribution"] * 3
+    hyp = rows("## Oracle multi-hypothesis")
+    assert hyp["mhl-3"][:3] == ["–"] * 3 and "–" not in hyp["mhl-3"][3:] and "–" not in hyp["binary"]
+    plot_hypotheses(res, tmp_path / "h.png")
+    plot_sparsification(res, tmp_path / "s.png")
+    assert (tmp_path / "h.png").stat().st_size > 0 and (tmp_path / "s.png").stat().st_size > 0

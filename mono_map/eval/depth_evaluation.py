@@ -79,6 +79,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
     pooled = {k: [] for k in ("gt", "log", "linear", "argmax", "entropy", "std_log", "modes")}
     times = []
     names = []
+    n_hyp, has_probs = None, False
     for j, (name, image, gt) in enumerate(progress(frames, total=n_frames, desc=desc or "eval-depth", unit="frame")):
         if j == 0:
             predictor.predict(image)  # warm-up, not timed
@@ -92,6 +93,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
             r_lin = predictor.decode(out, "linear")
             probs = r_log["probs"]
             if probs is not None:  # second uncertainty measure: std of log-depth under the distribution
+                has_probs = True
                 std_log = std_log_depth(probs, bins)
             else:
                 std_log = torch.zeros_like(r_log["entropy"])
@@ -105,6 +107,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
                 modes = F.interpolate(modes[..., :fh, :fw], size=(h, w), mode="nearest")[0].numpy()
             elif r_log.get("modes") is not None:   # MHL: its M hypotheses, one code path with the modes
                 (H, W), (fh, fw), (h, w), low = geom
+                n_hyp = int(r_log["modes"].shape[1])
                 modes = r_log["modes"][:, :max(MS)]
                 if low:
                     modes = F.interpolate(modes, size=(H, W), mode="nearest")
@@ -139,6 +142,11 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         "metrics_argmax": mean_errors(per["argmax"]),
         "sparsification": spars,
         "auc_std_log": spars_std["auc"],
+        # an uncertainty equal at every pixel (l2, berhu, MHL with one hypothesis) ranks nothing: its AUCs are
+        # those of an arbitrary order, reported as "no uncertainty"; std-log needs bin probabilities
+        "has_uncertainty": bool(np.ptp(P["entropy"]) > 0) if P["entropy"].size else False,
+        "has_distribution": has_probs,
+        "n_hypotheses": n_hyp,       # MHL: the hypotheses it was trained with (None: modes of a distribution)
         "hypotheses": {str(k): v for k, v in oracle_errors(P["gt"], P["modes"], MS).items()},
         "ms_per_frame": float(np.median(times)) if times else None,
     }
@@ -176,18 +184,30 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
           "std-log = ranked by the standard deviation of log-depth under the predicted distribution instead of entropy.", "",
           "| head | AUC ARE (%) | AUC RMSE (m) | AUC 1−δ1 (%) | oracle ARE | oracle RMSE | oracle 1−δ1 | random ARE | random RMSE | random 1−δ1 | std-log: ARE | std-log: RMSE | std-log: 1−δ1 |",
           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    def aucs(a: dict, ok: bool, none: str) -> str:
+        return f"{100*a['are']:.2f} | {a['rmse']:.3f} | {100*a['1-d1']:.2f}" if ok else " | ".join([none] * 3)
+
     for h in heads:
-        s = results[h]["sparsification"]
-        a, o, q, z = s["auc"], s["auc_oracle"], s["auc_random"], results[h]["auc_std_log"]
-        L.append(f"| {h} | {100*a['are']:.2f} | {a['rmse']:.3f} | {100*a['1-d1']:.2f} | {100*o['are']:.2f} | "
-                 f"{o['rmse']:.3f} | {100*o['1-d1']:.2f} | {100*q['are']:.2f} | {q['rmse']:.3f} | {100*q['1-d1']:.2f} | "
-                 f"{100*z['are']:.2f} | {z['rmse']:.3f} | {100*z['1-d1']:.2f} |")
+        r = results[h]
+        s = r["sparsification"]
+        unc = r.get("has_uncertainty", True)
+        dist_ok = r.get("has_distribution", True)
+        std_log = aucs(r["auc_std_log"], unc and dist_ok, "no distribution" if unc else "no uncertainty")
+        L.append(f"| {h} | {aucs(s['auc'], unc, 'no uncertainty')} | {aucs(s['auc_oracle'], True, '')} | "
+                 f"{aucs(s['auc_random'], True, '')} | {std_log} |")
     L += ["", "## Oracle multi-hypothesis evaluation (top-M modes; paper Table III / Fig. 6)", "",
           "| head | " + " | ".join(f"ARE M={m} | RMSE M={m} | δ1 M={m}" for m in MS) + " |",
           "|---|" + "---|---|---|" * len(MS)]
+    def best_of(hy: dict, m: int, n_hyp: int | None) -> str:
+        if n_hyp is not None and m < n_hyp:      # MHL-M's first m < M outputs are no hypothesis set of their own
+            return "– | – | –"
+        return f"{hy[str(m)]['abs_rel']:.4f} | {hy[str(m)]['rmse']:.3f} | {hy[str(m)]['a1']:.4f}"
+
     for h in heads:
-        hy = results[h]["hypotheses"]
-        L.append(f"| {h} | " + " | ".join(f"{hy[str(m)]['abs_rel']:.4f} | {hy[str(m)]['rmse']:.3f} | "
-                                            f"{hy[str(m)]['a1']:.4f}" for m in MS) + " |")
+        r = results[h]
+        L.append(f"| {h} | " + " | ".join(best_of(r["hypotheses"], m, r.get("n_hypotheses")) for m in MS) + " |")
+    if any(results[h].get("n_hypotheses") for h in heads):
+        L += ["", "MHL models are evaluated at M ≥ the number of hypotheses they were trained with (beyond it, "
+              "their M repeat); binary and the other distribution heads give their top-M modes."]
     return "\n".join(L) + "\n"
 

@@ -209,7 +209,8 @@ def plot_sparsification(results: dict[str, dict], path: Path) -> None:
                 s = r["sparsification"]
                 x = 100 * np.asarray(s["fractions"])
                 c = f"C{i}"
-                ax.plot(x, s["model"][key], color=c, label=f"{h} (AUC {s['auc'][key]:.3g})")
+                if r.get("has_uncertainty", True):       # a constant uncertainty ranks nothing: no model curve
+                    ax.plot(x, s["model"][key], color=c, label=f"{h} (AUC {s['auc'][key]:.3g})")
                 ax.plot(x, s["oracle"][key], color=c, ls="--", lw=0.8, label=f"{h} oracle")
             ax.set_xlabel("% most confident pixels kept")
             ax.set_ylabel(names[key])
@@ -220,15 +221,21 @@ def plot_sparsification(results: dict[str, dict], path: Path) -> None:
 
 
 def plot_hypotheses(results: dict[str, dict], path: Path) -> None:
-    """Oracle ARE and RMSE against the number of hypotheses M, one line per head. ``results``: head →
-    ``evaluate_model`` result (its "hypotheses" entry: str(M) → errors)."""
+    """Oracle ARE and RMSE against the number of hypotheses M (paper Fig. 6): one line per distribution head
+    (its top-M modes) and one line through the MHL models, each at the M it was trained with. ``results``:
+    head → ``evaluate_model`` result (its "hypotheses" entry: str(M) → errors; "n_hypotheses" for MHL)."""
     with figure(path, 110) as plt:
         fig, axes = plt.subplots(1, 2, figsize=(10, 4))
         ms = sorted({int(m) for r in results.values() for m in r["hypotheses"]})
-        for i, (h, r) in enumerate(results.items()):
-            hy = r["hypotheses"]
-            axes[0].plot(ms, [hy[str(m)]["abs_rel"] for m in ms], "o-", color=f"C{i}", label=h)
-            axes[1].plot(ms, [hy[str(m)]["rmse"] for m in ms], "o-", color=f"C{i}", label=h)
+        mhl = sorted((r["n_hypotheses"], r["hypotheses"][str(r["n_hypotheses"])], h) for h, r in results.items()
+                     if r.get("n_hypotheses") and str(r["n_hypotheses"]) in r["hypotheses"])
+        lines = [(h, ms, [r["hypotheses"][str(m)] for m in ms]) for h, r in results.items()
+                 if not r.get("n_hypotheses")]
+        if mhl:
+            lines.append((f"MHL ({', '.join(h for _, _, h in mhl)})", [m for m, _, _ in mhl], [e for _, e, _ in mhl]))
+        for i, (label, x, errs) in enumerate(lines):
+            axes[0].plot(x, [e["abs_rel"] for e in errs], "o-", color=f"C{i}", label=label)
+            axes[1].plot(x, [e["rmse"] for e in errs], "o-", color=f"C{i}", label=label)
         for ax, lab in zip(axes, ("ARE", "RMSE (m)")):
             ax.set_xlabel("number of hypotheses M (oracle picks the best)")
             ax.set_ylabel(lab)
