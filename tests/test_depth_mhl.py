@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from mono_map.depth.bins import DepthBins
-from mono_map.depth.distribution import top_modes
+from mono_map.depth.distribution import top_bins, top_modes
 from mono_map.depth.heads import decode, get_head
 from mono_map.depth.inference import DepthPredictor, load_checkpoint, save_checkpoint
 from mono_map.depth.losses import head_loss, relaxed_wta
@@ -132,3 +132,23 @@ def test_heads_without_uncertainty_say_so_and_mhl_counts_as_one_point_per_m(tmp_
     plot_hypotheses(res, tmp_path / "h.png")
     plot_sparsification(res, tmp_path / "s.png")
     assert (tmp_path / "h.png").stat().st_size > 0 and (tmp_path / "s.png").stat().st_size > 0
+
+
+def test_top_bins_are_the_papers_hypotheses_and_differ_from_modes():
+    """Table III's protocol reports the M highest-scoring bins: a broad peak gives its neighbouring bins, where
+    the modes give the peak and then the separate, smaller peak."""
+    p = torch.zeros(1, 16, 1, 1)
+    p[0, [4, 5, 6, 12], 0, 0] = torch.tensor([0.25, 0.35, 0.24, 0.16])
+    c = torch.as_tensor(BINS.centres, dtype=torch.float32)
+    d_bins, p_bins = top_bins(p, BINS, 3)
+    d_modes, _ = top_modes(p, BINS, 2)
+    assert torch.equal(d_bins[0, :, 0, 0], c[[5, 4, 6]]) and torch.allclose(p_bins[0, :, 0, 0], p[0, [5, 4, 6], 0, 0])
+    assert torch.equal(d_modes[0, :, 0, 0], c[[5, 12]])
+
+
+def test_eval_reports_top_bins_and_modes_and_mhl_gives_the_same_m_in_both(tmp_path):
+    b, h = _evaluate("binary", tmp_path), _evaluate("mhl", tmp_path, hypotheses=3)
+    assert set(b["hypotheses"]) == set(b["hypotheses_modes"]) == {"1", "3", "5", "10"}
+    assert b["hypotheses"]["1"] == b["hypotheses_modes"]["1"]           # both start at the most probable bin
+    assert b["hypotheses"]["10"]["abs_rel"] <= b["hypotheses"]["3"]["abs_rel"] <= b["hypotheses"]["1"]["abs_rel"]
+    assert h["hypotheses"] == h["hypotheses_modes"]

@@ -71,6 +71,15 @@ def top_modes(probs: torch.Tensor, bins: DepthBins, m: int) -> tuple[torch.Tenso
     return c[top_i], top_p
 
 
+def top_bins(probs: torch.Tensor, bins: DepthBins, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``m`` most probable bins as depth hypotheses (the paper's Table III protocol: "we report back M
+    depth hypotheses with the highest scores"; neighbouring bins of one peak count separately, unlike
+    :func:`top_modes`). Returns (bin-centre depths, probs), each (B, m, H, W), by decreasing probability."""
+    top_p, top_i = probs.topk(min(m, probs.shape[1]), dim=1)
+    c = torch.as_tensor(bins.centres, dtype=probs.dtype, device=probs.device)
+    return c[top_i], top_p
+
+
 def gaussian_entropy(log_var: torch.Tensor) -> torch.Tensor:
     """Differential entropy (nats) of a Gaussian over log-depth with variance exp(log_var)."""
     return 0.5 * (log_var + math.log(2.0 * math.pi * math.e))

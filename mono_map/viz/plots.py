@@ -222,7 +222,8 @@ def plot_sparsification(results: dict[str, dict], path: Path) -> None:
 
 def plot_hypotheses(results: dict[str, dict], path: Path) -> None:
     """Oracle ARE and RMSE against the number of hypotheses M (paper Fig. 6): one line per distribution head
-    (its top-M modes) and one line through the MHL models, each at the M it was trained with. ``results``:
+    (its M most probable bins; dashed, its M most probable modes) and one line through the MHL models, each at
+    the M it was trained with. ``results``:
     head → ``evaluate_model`` result (its "hypotheses" entry: str(M) → errors; "n_hypotheses" for MHL)."""
     with figure(path, 110) as plt:
         fig, axes = plt.subplots(1, 2, figsize=(10, 4))
@@ -236,6 +237,11 @@ def plot_hypotheses(results: dict[str, dict], path: Path) -> None:
         for i, (label, x, errs) in enumerate(lines):
             axes[0].plot(x, [e["abs_rel"] for e in errs], "o-", color=f"C{i}", label=label)
             axes[1].plot(x, [e["rmse"] for e in errs], "o-", color=f"C{i}", label=label)
+            r = results.get(label, {})
+            if r.get("hypotheses_modes") and r.get("has_distribution"):   # its modes beside its top bins
+                em = [r["hypotheses_modes"][str(m)] for m in x]
+                axes[0].plot(x, [e["abs_rel"] for e in em], "s--", color=f"C{i}", lw=0.9, label=f"{label}, modes")
+                axes[1].plot(x, [e["rmse"] for e in em], "s--", color=f"C{i}", lw=0.9, label=f"{label}, modes")
         for ax, lab in zip(axes, ("ARE", "RMSE (m)")):
             ax.set_xlabel("number of hypotheses M (oracle picks the best)")
             ax.set_ylabel(lab)
