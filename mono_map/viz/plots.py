@@ -226,7 +226,7 @@ def plot_hypotheses(results: dict[str, dict], path: Path) -> None:
     the M it was trained with. ``results``:
     head → ``evaluate_model`` result (its "hypotheses" entry: str(M) → errors; "n_hypotheses" for MHL)."""
     with figure(path, 110) as plt:
-        fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+        fig, axes = plt.subplots(1, 2, figsize=(11, 5.2))
         ms = sorted({int(m) for r in results.values() for m in r["hypotheses"]})
         mhl = sorted((r["n_hypotheses"], r["hypotheses"][str(r["n_hypotheses"])], h) for h, r in results.items()
                      if r.get("n_hypotheses") and str(r["n_hypotheses"]) in r["hypotheses"])
@@ -240,12 +240,15 @@ def plot_hypotheses(results: dict[str, dict], path: Path) -> None:
             r = results.get(label, {})
             if r.get("hypotheses_modes") and r.get("has_distribution"):   # its modes beside its top bins
                 em = [r["hypotheses_modes"][str(m)] for m in x]
-                axes[0].plot(x, [e["abs_rel"] for e in em], "s--", color=f"C{i}", lw=0.9, label=f"{label}, modes")
-                axes[1].plot(x, [e["rmse"] for e in em], "s--", color=f"C{i}", lw=0.9, label=f"{label}, modes")
+                axes[0].plot(x, [e["abs_rel"] for e in em], "s--", color=f"C{i}", lw=0.9, ms=4, label=f"{label}, modes")
+                axes[1].plot(x, [e["rmse"] for e in em], "s--", color=f"C{i}", lw=0.9, ms=4, label=f"{label}, modes")
         for ax, lab in zip(axes, ("ARE", "RMSE (m)")):
             ax.set_xlabel("number of hypotheses M (oracle picks the best)")
             ax.set_ylabel(lab)
             ax.set_xticks(ms)
             ax.grid(alpha=0.3)
-            ax.legend()
-        fig.tight_layout()
+        handles, labels = axes[0].get_legend_handles_labels()      # one legend below both panels
+        fig.legend(handles, labels, loc="lower center", ncol=min(4, len(labels)), fontsize=8, frameon=False)
+        fig.suptitle("Oracle best of M: a distribution's M most probable bins (solid), its M modes (dashed), "
+                     "MHL models at their own M", fontsize=10)
+        fig.tight_layout(rect=(0, 0.06 + 0.035 * ((len(labels) - 1) // 4), 1, 0.96))
