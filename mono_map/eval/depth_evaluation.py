@@ -99,6 +99,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
                 std_log = torch.zeros_like(r_log["entropy"])
             maps = torch.stack([r_log["depth"], r_lin["depth"], r_log["argmax"], r_log["entropy"], std_log], 1)
             maps = predictor.to_image(maps, geom)[0].numpy()
+
             def nearest(t: torch.Tensor) -> np.ndarray:   # (1, M, h', w') hypotheses -> (M, h, w) at the pixels
                 (H, W), (fh, fw), (h, w), low = geom
                 if low:
@@ -188,6 +189,7 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
           "std-log = ranked by the standard deviation of log-depth under the predicted distribution instead of entropy.", "",
           "| head | AUC ARE (%) | AUC RMSE (m) | AUC 1−δ1 (%) | oracle ARE | oracle RMSE | oracle 1−δ1 | random ARE | random RMSE | random 1−δ1 | std-log: ARE | std-log: RMSE | std-log: 1−δ1 |",
           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+
     def aucs(a: dict, ok: bool, none: str) -> str:
         return f"{100*a['are']:.2f} | {a['rmse']:.3f} | {100*a['1-d1']:.2f}" if ok else " | ".join([none] * 3)
 
@@ -199,6 +201,7 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
         std_log = aucs(r["auc_std_log"], unc and dist_ok, "no distribution" if unc else "no uncertainty")
         L.append(f"| {h} | {aucs(s['auc'], unc, 'no uncertainty')} | {aucs(s['auc_oracle'], True, '')} | "
                  f"{aucs(s['auc_random'], True, '')} | {std_log} |")
+
     def best_of(hy: dict, m: int, n_hyp: int | None) -> str:
         if n_hyp is not None and m < n_hyp:      # MHL-M's first m < M outputs are no hypothesis set of their own
             return "– | – | –"
