@@ -196,8 +196,8 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
     for h in heads:
         r = results[h]
         s = r["sparsification"]
-        unc = r.get("has_uncertainty", True)
-        dist_ok = r.get("has_distribution", True)
+        unc = r["has_uncertainty"]
+        dist_ok = r["has_distribution"]
         std_log = aucs(r["auc_std_log"], unc and dist_ok, "no distribution" if unc else "no uncertainty")
         L.append(f"| {h} | {aucs(s['auc'], unc, 'no uncertainty')} | {aucs(s['auc_oracle'], True, '')} | "
                  f"{aucs(s['auc_random'], True, '')} | {std_log} |")
@@ -214,9 +214,8 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
               "|---|" + "---|---|---|" * len(MS)]
         for h in heads:
             r = results[h]
-            hy = r.get(key, r["hypotheses"])
-            L.append(f"| {h} | " + " | ".join(best_of(hy, m, r.get("n_hypotheses")) for m in MS) + " |")
-    if any(results[h].get("n_hypotheses") for h in heads):
+            L.append(f"| {h} | " + " | ".join(best_of(r[key], m, r["n_hypotheses"]) for m in MS) + " |")
+    if any(results[h]["n_hypotheses"] for h in heads):
         L += ["", "MHL models are evaluated at M ≥ the number of hypotheses they were trained with (beyond it, "
               "their M repeat) and give the same M in both tables."]
     return "\n".join(L) + "\n"

@@ -209,7 +209,7 @@ def plot_sparsification(results: dict[str, dict], path: Path) -> None:
                 s = r["sparsification"]
                 x = 100 * np.asarray(s["fractions"])
                 c = f"C{i}"
-                if r.get("has_uncertainty", True):       # a constant uncertainty ranks nothing: no model curve
+                if r["has_uncertainty"]:       # a constant uncertainty ranks nothing: no model curve
                     ax.plot(x, s["model"][key], color=c, label=f"{h} (AUC {s['auc'][key]:.3g})")
                 ax.plot(x, s["oracle"][key], color=c, ls="--", lw=0.8, label=f"{h} oracle")
             ax.set_xlabel("% most confident pixels kept")
@@ -229,16 +229,16 @@ def plot_hypotheses(results: dict[str, dict], path: Path) -> None:
         fig, axes = plt.subplots(1, 2, figsize=(11, 5.2))
         ms = sorted({int(m) for r in results.values() for m in r["hypotheses"]})
         mhl = sorted((r["n_hypotheses"], r["hypotheses"][str(r["n_hypotheses"])], h) for h, r in results.items()
-                     if r.get("n_hypotheses") and str(r["n_hypotheses"]) in r["hypotheses"])
+                     if r["n_hypotheses"] and str(r["n_hypotheses"]) in r["hypotheses"])
         lines = [(h, ms, [r["hypotheses"][str(m)] for m in ms]) for h, r in results.items()
-                 if not r.get("n_hypotheses")]
+                 if not r["n_hypotheses"]]
         if mhl:
             lines.append((f"MHL ({', '.join(h for _, _, h in mhl)})", [m for m, _, _ in mhl], [e for _, e, _ in mhl]))
         for i, (label, x, errs) in enumerate(lines):
             axes[0].plot(x, [e["abs_rel"] for e in errs], "o-", color=f"C{i}", label=label)
             axes[1].plot(x, [e["rmse"] for e in errs], "o-", color=f"C{i}", label=label)
-            r = results.get(label, {})
-            if r.get("hypotheses_modes") and r.get("has_distribution"):   # its modes beside its top bins
+            r = results.get(label)              # None for the MHL line
+            if r is not None and r["has_distribution"]:   # its modes beside its top bins
                 em = [r["hypotheses_modes"][str(m)] for m in x]
                 axes[0].plot(x, [e["abs_rel"] for e in em], "s--", color=f"C{i}", lw=0.9, ms=4, label=f"{label}, modes")
                 axes[1].plot(x, [e["rmse"] for e in em], "s--", color=f"C{i}", lw=0.9, ms=4, label=f"{label}, modes")
