@@ -28,10 +28,27 @@ def test_picture_and_a_continued_run(tmp_path):
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
 
 
+def _png_height(path: Path) -> int:
+    return int.from_bytes(path.read_bytes()[20:24], "big")     # the IHDR chunk: width, then height
+
+
+def test_rows_of_runs_stack_panels(tmp_path):
+    a = _run_dir(tmp_path, "a", [0.1, 0.2])
+    b = _run_dir(tmp_path, "b", [0.1, 0.2])
+    one, two = tmp_path / "one.png", tmp_path / "two.png"
+    for out, rows in ((one, []), (two, ["--row", "first=a,b", "--row", "second=b"])):
+        p = subprocess.run([sys.executable, str(TOOL), str(a), str(b), *rows, "--out", str(out)],
+                           capture_output=True, text=True, cwd=REPO)
+        assert p.returncode == 0, p.stderr
+    assert _png_height(two) > 1.8 * _png_height(one)
+
+
 def test_bad_input_is_one_line(tmp_path):
     a = _run_dir(tmp_path, "parent", [0.1, 0.2])
     for extra, needle in (([str(tmp_path / "nope")], "no such file"),
-                          ([str(a), "--continues", "child=parent"], "--continues child=parent")):
+                          ([str(a), "--continues", "child=parent"], "--continues child=parent"),
+                          ([str(a), "--row", "heads=parent,other"], "unknown: other"),
+                          ([str(a), "--row", "parent"], "--row parent")):
         p = subprocess.run([sys.executable, str(TOOL), *extra, "--out", str(tmp_path / "x.png")],
                            capture_output=True, text=True, cwd=REPO)
         assert p.returncode != 0 and needle in p.stderr and "Traceback" not in p.stderr
