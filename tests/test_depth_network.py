@@ -48,3 +48,28 @@ def test_unknown_architecture_or_head():
         named_config("small", head="mystery")
     with pytest.raises(MonoMapError, match="multiples of 32"):
         named_config("small", input_height=100)
+
+
+def test_mc_dropout_predictions_repeat_and_leave_the_callers_rng_alone():
+    """An MC-dropout predictor gives an image the same prediction every time (seeded masks), unlike an
+    unseeded draw, and does not advance the global torch RNG."""
+    import dataclasses
+
+    import numpy as np
+
+    from mono_map.depth.inference import DepthPredictor
+
+    torch.manual_seed(0)
+    cfg = named_config("small", head="gaussian-dropout", widths=(8, 8, 8, 8), stem_width=8,
+                       decoder_widths=(8, 8, 8), spp_width=4, mc_samples=4)
+    pred = DepthPredictor(DepthNet(cfg).eval())
+    img = (np.random.default_rng(0).random((40, 100, 3)) * 255).astype(np.uint8)
+    state = torch.random.get_rng_state()
+    a, b = pred.predict(img), pred.predict(img)
+    assert torch.equal(torch.random.get_rng_state(), state)
+    assert np.array_equal(a.depth, b.depth) and np.array_equal(a.entropy, b.entropy)
+    x = torch.rand(1, 3, 64, 128)
+    with torch.no_grad():                                    # the network alone: random masks every call
+        assert not torch.equal(pred.model(x, mc_samples=4), pred.model(x, mc_samples=4))
+    pred.cfg = dataclasses.replace(pred.cfg, mc_samples=0)  # dropout off: the deterministic network
+    assert not np.array_equal(pred.predict(img).entropy, a.entropy)

@@ -23,6 +23,7 @@ from mono_map.paths import CHECKPOINT_DIR
 
 CHECKPOINT_FORMAT = "mono-map-depth"
 CHECKPOINT_VERSION = 1
+MC_SEED = 0                       # the dropout masks of MC-dropout predictions (DepthPredictor._forward)
 
 
 @dataclass
@@ -227,14 +228,23 @@ class DepthPredictor:
         return x.to(self.device), (fh, fw), (h, w)
 
     def _forward(self, x: torch.Tensor) -> tuple[torch.Tensor, bool]:
-        """Raw head outputs; MC-dropout heads sample the tail at stride 4 (32 full-size samples would not fit)."""
+        """Raw head outputs; MC-dropout heads sample the tail at stride 4 (32 full-size samples would not fit),
+        with dropout masks drawn from a generator seeded with ``MC_SEED`` on every call: an image always gets
+        the same prediction (evaluations repeat to the digit), and the caller's torch RNG is left as it was."""
         mc = self.cfg.mc_samples if get_dropout(self.model) else 0
         low = self.fast or mc > 0
+        if mc > 0:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(MC_SEED)
+                return self._network(x, mc, low), low
+        return self._network(x, mc, low), low
+
+    def _network(self, x: torch.Tensor, mc: int, low: bool) -> torch.Tensor:
         if self.precision == "bf16":
             with torch.autocast(x.device.type, dtype=torch.bfloat16):
                 out = self.model(x.contiguous(memory_format=torch.channels_last), mc_samples=mc, upsample=not low)
-            return out.float(), low
-        return self.model(x, mc_samples=mc, upsample=not low), low
+            return out.float()
+        return self.model(x, mc_samples=mc, upsample=not low)
 
     def to_image(self, t: torch.Tensor, geom: tuple) -> torch.Tensor:
         """(B,C,h',w') maps at network resolution -> (B,C,h,w) at the input image's resolution (bilinear)."""
