@@ -144,6 +144,30 @@ def test_quantised_updates_lie_on_the_lattice():
         assert np.sign(v) == np.sign(da[key]) and abs(v - da[key]) <= 0.05 + 1e-6
 
 
+@pytest.mark.parametrize("quantum, snap_free", [(0.2, True), (0.1, False), (0.0, True), (0.0, False), (0.3, True)])
+def test_compiled_quantise_split_equals_quantise_updates(quantum, snap_free):
+    """The frame path's one-pass rounding and sign split gives quantise_updates' values bit for bit, the zeros
+    dropped, the negatives first, each part in input order (ties of the rounding included: np.round's half-even)."""
+    from mono_map.mapping.raycast_c import load_kernel, quantise_split_c
+
+    kernel = load_kernel()
+    if kernel is None:
+        pytest.skip("no C compiler: the distribution path itself needs the kernel")
+    rng = np.random.default_rng(3)
+    dl = rng.uniform(-0.5, 0.9, 5000).astype(np.float32)
+    dl[::7] = HIT
+    dl[3::11] = MISS
+    dl[5::13] = 0.0
+    dl[:8] = np.float32([0.1, 0.3, 0.5, -0.1, -0.3, MISS / 2, np.nextafter(MISS / 2, np.float32(0)), 0.25])  # ties, edges
+    lin = rng.permutation(10_000)[:len(dl)].astype(np.int64)
+    want = quantise_updates(dl, HIT, MISS, quantum, snap_free)
+    neg, pos = want < 0, want > 0
+    out_lin, out_dl, n_neg = quantise_split_c(kernel, lin, dl, HIT, MISS, quantum, snap_free)
+    assert n_neg == neg.sum() and len(out_lin) == neg.sum() + pos.sum()
+    assert np.array_equal(out_lin, np.r_[lin[neg], lin[pos]])
+    assert np.array_equal(out_dl.view(np.uint32), np.r_[want[neg], want[pos]].view(np.uint32))
+
+
 ORIGIN = np.array([0.1, 0.1, 0.05])   # on a cell centre in x and y: rays along +z stay on one cell column
 
 
@@ -596,11 +620,13 @@ def test_compiled_ray_distributions_match_the_numpy_formulas(monkeypatch):
 
     rng = np.random.default_rng(8)
     edges = np.geomspace(1.0, 80.0, 17)
-    p = (rng.dirichlet(np.full(16, 0.3), size=5000) * rng.uniform(0.3, 1.0, (5000, 1))).astype(np.float32)
+    n = 5003                                                      # rows in blocks of 4, and a tail
+    p = (rng.dirichlet(np.full(16, 0.3), size=n) * rng.uniform(0.3, 1.0, (n, 1))).astype(np.float32)
     p[3] = 0.0
-    pb = rng.uniform(0, 1, 5000)
+    pb = rng.uniform(0, 1, n)
     for t in (1.0, 0.5, 0.7):
         mass, fd = ray_distributions(p, pb, t, edges, 0.4)
+        assert np.array_equal(fd, far_depth(mass, pb, edges, 0.4))   # row by row: the same bits
         want = unconditional_mass(p, pb, t)
         if t == 1.0:
             assert np.array_equal(mass, want)                     # no sums involved: to the bit

@@ -79,6 +79,7 @@ class CellUpdates:
     n_rays: int = 0
     lo: np.ndarray | None = None      # inclusive key bounds of the frame's box
     hi: np.ndarray | None = None
+    n_free: int | None = None         # the first n_free updates are the negative ones, the rest positive (None: any order)
 
 
 def check_distribution_config(cfg: DistributionConfig) -> DistributionConfig:
@@ -330,7 +331,7 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
     edges (K+1,) or (N, K+1): the distributions; hit, miss: float32 log-odds of the sensor model;
     min_update: weaker updates are dropped; quantum, snap_free: updates rounded (:func:`quantise_updates`).
     """
-    from mono_map.mapping.raycast_c import load_kernel, ray_weights_c
+    from mono_map.mapping.raycast_c import load_kernel, quantise_split_c, ray_weights_c
 
     mass = np.empty(len(probs) if np.ndim(probs) == 2 else 0)   # the rays' sums of probs: the check's by-product
     probs, pb, edges = check_distribution(probs, p_beyond, edges, mass=mass)
@@ -369,8 +370,7 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
                             hit, miss, res, box.lo, box.strides, TREE_MAX_VAL, box.size, min_update=min_update,
                             dense=box.size <= _DENSE_MAX_CELLS, free_threshold=thr,
                             ray_ids=far_box.linear(far_keys), mass=mass)
-    if quantum > 0 or snap_free:
-        dl = quantise_updates(dl, hit, miss, quantum, snap_free)
-        kept = dl != 0
-        lin, dl = lin[kept], dl[kept]
-    return CellUpdates(keys=box.keys(lin), dl=dl, n_rays=len(pts), lo=box.lo, hi=box.lo + box.dims - 1)
+    # quantise_updates, the zeros dropped, the free-space updates first (compiled, one pass)
+    lin, dl, n_free = quantise_split_c(kernel, lin, dl, hit, miss, quantum, snap_free)
+    return CellUpdates(keys=box.keys(lin), dl=dl, n_rays=len(pts), lo=box.lo, hi=box.lo + box.dims - 1,
+                       n_free=n_free)

@@ -140,11 +140,9 @@ static inline double cdf_at(double z, const float *p, const double *e, int64_t K
 }
 
 /* Far depth of one piecewise-uniform distribution: the depth where P(beyond) = mass - CDF + p_beyond
-   first falls below eps (linear within the bin), else the last edge. */
-static inline double far_depth_one(const float *p, double pb, const double *e, int64_t K, double eps)
+   first falls below eps (linear within the bin), else the last edge; mass: the sum of p in bin order. */
+static inline double far_depth_mass(const float *p, double mass, double pb, const double *e, int64_t K, double eps)
 {
-    double mass = 0.0;
-    for (int64_t j = 0; j < K; ++j) mass += (double) p[j];
     double beyond = mass + pb;                   /* P(beyond) at the lower edge of bin j */
     for (int64_t j = 0; j < K; ++j) {
         double after = beyond - (double) p[j];
@@ -156,6 +154,13 @@ static inline double far_depth_one(const float *p, double pb, const double *e, i
         beyond = after;
     }
     return e[K];
+}
+
+static inline double far_depth_one(const float *p, double pb, const double *e, int64_t K, double eps)
+{
+    double mass = 0.0;
+    for (int64_t j = 0; j < K; ++j) mass += (double) p[j];
+    return far_depth_mass(p, mass, pb, e, K, eps);
 }
 
 void mm_far_depth(const float *probs, const double *p_beyond, const double *edges, int64_t edge_stride,
@@ -170,30 +175,71 @@ void mm_far_depth(const float *probs, const double *p_beyond, const double *edge
    float32, as apply_temperature), times (1 - p_beyond) (float32, as unconditional_mass) into out (n x K; may
    be q itself: element-wise), and each row's far depth (far_depth_one) into far. idx (n, or NULL): output row
    i reads q's row idx[i] (a gather without an intermediate copy). */
+/* R rows of mm_ray_mass at once (R a constant where inlined: every per-row sum stays in bin order, and the
+   R independent sums overlap in the pipeline instead of waiting for each other's additions) */
+static inline __attribute__((always_inline)) void ray_mass_rows(const float *const *p, float *const *o, const double *pb, const double *const *e,
+                                 int R, int64_t K, double inv_t, double eps, double *far)
+{
+    double keep[4], sp[4], sq[4], scale[4], mass[4];
+    for (int r = 0; r < R; ++r) { keep[r] = 1.0 - pb[r]; sp[r] = 0.0; sq[r] = 0.0; mass[r] = 0.0; }
+    if (inv_t == 1.0) {
+        for (int64_t j = 0; j < K; ++j)
+            for (int r = 0; r < R; ++r) {
+                o[r][j] = (float) ((double) p[r][j] * keep[r]);
+                mass[r] += (double) o[r][j];
+            }
+    } else {
+        for (int64_t j = 0; j < K; ++j)
+            for (int r = 0; r < R; ++r) {
+                double x = (double) p[r][j];
+                sp[r] += x;
+                sq[r] += inv_t == 2.0 ? x * x : pow(x, inv_t);
+            }
+        for (int r = 0; r < R; ++r) scale[r] = sp[r] / (sq[r] > 0.0 ? sq[r] : 1.0);
+        for (int64_t j = 0; j < K; ++j)             /* the tempered values again (a square: cheap) */
+            for (int r = 0; r < R; ++r) {
+                double x = (double) p[r][j];
+                double t = inv_t == 2.0 ? x * x : pow(x, inv_t);
+                o[r][j] = (float) ((double) (float) (t * scale[r]) * keep[r]);
+                mass[r] += (double) o[r][j];
+            }
+    }
+    /* far_depth_mass of the R rows, stepped together */
+    double beyond[4];
+    int done[4], left = R;
+    for (int r = 0; r < R; ++r) { beyond[r] = mass[r] + pb[r]; done[r] = 0; }
+    for (int64_t j = 0; j < K && left > 0; ++j)
+        for (int r = 0; r < R; ++r) {
+            if (done[r]) continue;
+            const float *pr = o[r];
+            double after = beyond[r] - (double) pr[j];
+            if (after < eps) {
+                double f = pr[j] > 0.0f ? (beyond[r] - eps) / (double) pr[j] : 0.0;
+                f = f < 0.0 ? 0.0 : (f > 1.0 ? 1.0 : f);
+                far[r] = e[r][j] + (e[r][j + 1] - e[r][j]) * f;
+                done[r] = 1;
+                --left;
+            } else beyond[r] = after;
+        }
+    for (int r = 0; r < R; ++r) if (!done[r]) far[r] = e[r][K];
+}
+
 void mm_ray_mass(const float *q, const double *p_beyond, int64_t n, int64_t K, double inv_t, const double *edges,
                  int64_t edge_stride, double eps, float *out, double *far, const int64_t *idx)
 {
-    for (int64_t i = 0; i < n; ++i) {
-        const float *p = q + K * (idx ? idx[i] : i);
-        float *o = out + K * i;
-        const double keep = 1.0 - p_beyond[i];
-        if (inv_t == 1.0) {
-            for (int64_t j = 0; j < K; ++j) o[j] = (float) ((double) p[j] * keep);
-        } else {
-            double sp = 0.0, sq = 0.0;
-            for (int64_t j = 0; j < K; ++j) {
-                double x = (double) p[j];
-                sp += x;
-                sq += inv_t == 2.0 ? x * x : pow(x, inv_t);
-            }
-            const double scale = sp / (sq > 0.0 ? sq : 1.0);
-            for (int64_t j = 0; j < K; ++j) {          /* the tempered values again (a square: cheap) */
-                double x = (double) p[j];
-                double t = inv_t == 2.0 ? x * x : pow(x, inv_t);
-                o[j] = (float) ((double) (float) (t * scale) * keep);
-            }
+    int64_t i = 0;
+    for (; i < n; i += 4) {
+        const int R = n - i < 4 ? (int) (n - i) : 4;
+        const float *p[4];
+        float *o[4];
+        const double *e[4];
+        for (int r = 0; r < R; ++r) {
+            p[r] = q + K * (idx ? idx[i + r] : i + r);
+            o[r] = out + K * (i + r);
+            e[r] = edges + edge_stride * (i + r);
         }
-        far[i] = far_depth_one(o, p_beyond[i], edges + edge_stride * i, K, eps);
+        if (R == 4) ray_mass_rows(p, o, p_beyond + i, e, 4, K, inv_t, eps, far + i);
+        else for (int r = 0; r < R; ++r) ray_mass_rows(p + r, o + r, p_beyond + i + r, e + r, 1, K, inv_t, eps, far + i + r);
     }
 }
 
@@ -206,26 +252,29 @@ void mm_check_rows(const float *probs, const double *p_beyond, int64_t n, int64_
 {
     int64_t bad_p = 0, neg_p = 0, bad_b = 0, neg_b = 0, over = 0;
     double min_p = DBL_MAX, min_b = DBL_MAX, max_total = -DBL_MAX;
-    for (int64_t i = 0; i < n; ++i) {
-        const float *p = probs + K * i;
-        double total = 0.0;
-        for (int64_t j = 0; j < K; ++j) {
-            float x = p[j];
-            if (!isfinite(x)) { ++bad_p; continue; }
-            if (x < 0.0f) { ++neg_p; }
-            if ((double) x < min_p) min_p = (double) x;
-            total += (double) x;
+    for (int64_t i = 0; i < n; i += 4) {          /* 4 rows at a time, each row's total in bin order */
+        const int R = n - i < 4 ? (int) (n - i) : 4;
+        double total[4] = {0.0, 0.0, 0.0, 0.0};
+        for (int64_t j = 0; j < K; ++j)
+            for (int r = 0; r < R; ++r) {
+                float x = probs[K * (i + r) + j];
+                if (!isfinite(x)) { ++bad_p; continue; }
+                if (x < 0.0f) { ++neg_p; }
+                if ((double) x < min_p) min_p = (double) x;
+                total[r] += (double) x;
+            }
+        for (int r = 0; r < R; ++r) {
+            if (row_mass) row_mass[i + r] = total[r];
+            double b = p_beyond[i + r];
+            if (!isfinite(b)) ++bad_b;
+            else {
+                if (b < 0.0) ++neg_b;
+                if (b < min_b) min_b = b;
+                total[r] += b;
+            }
+            if (total[r] > max_total) max_total = total[r];
+            if (total[r] > tol) ++over;
         }
-        if (row_mass) row_mass[i] = total;
-        double b = p_beyond[i];
-        if (!isfinite(b)) ++bad_b;
-        else {
-            if (b < 0.0) ++neg_b;
-            if (b < min_b) min_b = b;
-            total += b;
-        }
-        if (total > max_total) max_total = total;
-        if (total > tol) ++over;
     }
     stats[0] = (double) bad_p; stats[1] = (double) neg_p; stats[2] = min_p;
     stats[3] = (double) bad_b; stats[4] = (double) neg_b; stats[5] = min_b; stats[6] = max_total;
@@ -244,6 +293,12 @@ void mm_check_rows(const float *probs, const double *p_beyond, int64_t n, int64_
             if (o_ == 0.0f) { if (off >= cap) { ret = -1; goto done; } acc[(x)] = v_; out[off++] = (x); } \
             else if (v_ > 0.0f ? (o_ < 0.0f || v_ > o_) : (o_ < 0.0f && v_ < o_)) acc[(x)] = v_; } \
         else { if (off >= cap) { ret = -1; goto done; } out_dl[off] = v_; out[off++] = (x); } } } while (0)
+/* PUT(x, miss) for the most negative possible update (a whole miss: it replaces any negative, never a positive) */
+#define PUT_MISS(x) do { if ((x) < 0 || (x) >= acc_size) { ret = -2; goto done; } \
+        if (acc) { float o_ = acc[(x)]; \
+            if (o_ == 0.0f) { if (off >= cap) { ret = -1; goto done; } acc[(x)] = miss; out[off++] = (x); } \
+            else if (o_ < 0.0f && miss < o_) acc[(x)] = miss; } \
+        else { if (off >= cap) { ret = -1; goto done; } out_dl[off] = miss; out[off++] = (x); } } while (0)
 typedef struct { const float *p; const double *e; double sc, pb, mass, cum, c_in, c_out, z_sure; int64_t k; int sure; } RayState;
 typedef struct { double t; int64_t j; } SortKey;
 static int cmp_sort_key(const void *a, const void *b)
@@ -354,6 +409,15 @@ int64_t mm_ray_weights(const float *origin, const int64_t *key_origin, const flo
             double dist = t0 < t1 ? t0 : t1;
             dist = dist < t2 ? dist : t2;
             int stop = at_end || dist > len;
+            if (n_act == 0 && !stop && s_head < n_sure && t_out < sk[s_head].t) {
+                /* every ray of the group still in its sure-free zone (most of a ray's length): the cell left
+                   gets the whole miss that stands for them — the general step below would give the same */
+                PUT_MISS(cell);
+                t_in = t_out;
+                t_out = dist;
+                cell = lin;
+                continue;
+            }
             while (s_head < n_sure && (stop || t_out >= sk[s_head].t)) {   /* leaving its zone: exact from here */
                 RayState *r = st + sk[s_head].j;
                 r->sure = 0;
@@ -420,6 +484,37 @@ int64_t mm_acc_merge(const int64_t *lin, int64_t n, float *a, float *b, int64_t 
         else if (v > 0.0f ? (o < 0.0f || v > o) : (o < 0.0f && v < o)) a[x] = v;
     }
     return m;
+}
+
+/* distribution.quantise_updates on n updates dl at indices lin (quantum > 0: rounded to multiples of quantum
+   in float64, half to even as np.round, except values equal to hit or miss; snap: negatives become miss where
+   <= miss / 2, else 0), the zeros dropped and the rest split by sign, each part in input order: the negatives
+   to out_lin / out_dl[0 .. *n_neg), the positives after them; returns the number written. */
+int64_t mm_quantise_split(const int64_t *lin, const float *dl, int64_t n, float hit, float miss, double quantum,
+                          int snap, int64_t *out_lin, float *out_dl, int64_t *n_neg)
+{
+    int64_t neg = 0, pos = n;            /* negatives forward from the front, positives backward from the end */
+    for (int64_t i = 0; i < n; ++i) {
+        float v = dl[i];
+        if (quantum > 0.0 && v != hit && v != miss)
+            v = (float) (nearbyint((double) v / quantum) * quantum);
+        if (snap && v < 0.0f) v = v <= miss / 2.0f ? miss : 0.0f;
+        if (v == 0.0f) continue;
+        int64_t at = v < 0.0f ? neg++ : --pos;
+        out_lin[at] = lin[i];
+        out_dl[at] = v;
+    }
+    /* the positives were written back to front: reverse them into input order, right after the negatives */
+    for (int64_t a = pos, b = n - 1; a < b; ++a, --b) {
+        int64_t tl = out_lin[a]; out_lin[a] = out_lin[b]; out_lin[b] = tl;
+        float tv = out_dl[a]; out_dl[a] = out_dl[b]; out_dl[b] = tv;
+    }
+    if (pos > neg) {
+        memmove(out_lin + neg, out_lin + pos, sizeof(int64_t) * (size_t) (n - pos));
+        memmove(out_dl + neg, out_dl + pos, sizeof(float) * (size_t) (n - pos));
+    }
+    *n_neg = neg;
+    return neg + (n - pos);
 }
 
 /* dl[i] = acc[lin[i]] for n indices, zeroing acc there (the buffer is left zeroed for the next frame). */
@@ -759,6 +854,7 @@ def load_kernel():
                            ("ray_mass", [p, p, i64, i64, f64, p, i64, f64, p, p, p]),
                            ("acc_merge", [p, i64, p, p, p]),
                            ("acc_take", [p, i64, p, p]),
+                           ("quantise_split", [p, p, i64, f32, f32, f64, ctypes.c_int, p, p, p]),
                            ("check_rows", [p, p, i64, i64, f64, p, p, p])):
             cfn = getattr(lib, "mm_" + name)
             cfn.argtypes = args
@@ -1009,6 +1105,20 @@ def combine_updates(lin: np.ndarray, dl: np.ndarray) -> tuple[np.ndarray, np.nda
     hi = np.maximum.reduceat(dl, starts)
     low = np.minimum.reduceat(dl, starts)
     return lin[starts], np.where(hi > 0, hi, low).astype(np.float32)
+
+
+def quantise_split_c(fn, lin: np.ndarray, dl: np.ndarray, hit: float, miss: float, quantum: float,
+                     snap_free: bool) -> tuple[np.ndarray, np.ndarray, int]:
+    """``mm_quantise_split``: the updates ``dl`` (float32) at indices ``lin`` (int64) rounded as
+    :func:`mono_map.mapping.distribution.quantise_updates`, the zeros dropped, the negatives first, then the
+    positives (each in input order): (indices, updates, number of negatives)."""
+    lin = np.ascontiguousarray(lin, dtype=np.int64)
+    dl = np.ascontiguousarray(dl, dtype=np.float32)
+    out_lin, out_dl = np.empty(len(lin), dtype=np.int64), np.empty(len(lin), dtype=np.float32)
+    n_neg = np.zeros(1, dtype=np.int64)
+    m = fn.quantise_split(lin.ctypes.data, dl.ctypes.data, len(lin), float(hit), float(miss), float(quantum),
+                          int(bool(snap_free)), out_lin.ctypes.data, out_dl.ctypes.data, n_neg.ctypes.data)
+    return out_lin[:m], out_dl[:m], int(n_neg[0])
 
 
 def far_depth_c(fn, probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, eps: float) -> np.ndarray:
