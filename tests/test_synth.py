@@ -295,3 +295,181 @@ def test_frame_files_decode_to_exactly_what_was_rendered(tmp_path):
     assert np.array_equal(np.fromfile(paths["velodyne"], np.float32).reshape(-1, 4), pts)
     with pytest.raises(ValueError, match="unknown kind"):
         writer.png_params("jpeg")
+
+
+# --- the compiled renderer kernels (mono_map/data/synth/kernels.py) against their numpy references ---
+
+def _compiled():
+    """The kernels; where a C compiler exists they must build (a silent numpy fallback would hide a broken kernel)."""
+    import shutil
+
+    from mono_map.data.synth import kernels
+
+    lib = kernels.library()
+    if lib is None:
+        assert shutil.which("cc") is None or __import__("os").environ.get("MONO_MAP_NO_C") == "1"
+        pytest.skip("no C compiler: the renderer runs its numpy path")
+    return kernels
+
+
+@pytest.fixture(scope="module")
+def tiny_renderer():
+    from mono_map.data.synth import FrameRenderer
+    from mono_map.data.synth.town import build_town
+
+    recipe = load_recipe("tiny")
+    return FrameRenderer(recipe, build_town(recipe), nthreads=1)
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """Bit for bit (dtype, shape and bytes: -0.0 != 0.0, NaN == NaN)."""
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def test_compiled_surface_matches_numpy_on_random_hits(tiny_renderer):
+    """Every material, random points (including far, negative, grid-aligned and huge coordinates) and normals
+    (roofs, walls, fences at any angle), camera and LiDAR variants: the same bits as materials.surface."""
+    import platform
+
+    from mono_map.data.synth import materials as M
+
+    kernels = _compiled()
+    town = tiny_renderer.town
+    rng = np.random.default_rng(5)
+    prims = []
+    for m in np.unique(town.tri_material):
+        ids = np.nonzero(town.tri_material == m)[0]
+        prims.append(rng.choice(ids, min(len(ids), 4000)))
+    prim = np.concatenate(prims).astype(np.int64)
+    N = len(prim)
+    uv = rng.random((N, 2)).astype(np.float32)
+    uv[uv.sum(1) > 1] = 1 - uv[uv.sum(1) > 1]
+    F = town.triangles[prim]
+    V = town.vertices
+    p = ((1 - uv[:, :1] - uv[:, 1:]) * V[F[:, 0]] + uv[:, :1] * V[F[:, 1]] + uv[:, 1:] * V[F[:, 2]]).astype(np.float32)
+    p[: N // 8] += rng.normal(0, 30, (N // 8, 3)).astype(np.float32)                 # off the surface
+    p[N // 8: N // 4] = np.round(p[N // 8: N // 4] * 4) / 4                            # on texture cell borders
+    if platform.machine() in ("x86_64", "AMD64"):    # numpy's float -> int32 cast out of range: x86's INT32_MIN
+        p[-50:] = rng.choice([-1e9, 3e9, 1e30, -0.0], (50, 3)).astype(np.float32)
+    n = rng.normal(size=(N, 3)).astype(np.float32)
+    n[::3, 1] *= 10                                                                    # roofs / ground
+    n[1::7, [0, 2]] = 0                                                                # degenerate tangents
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    for lidar in (False, True):
+        ref = M.surface(town, p, n, prim, uv, lidar)
+        got = kernels.surface(town, p, n, prim, uv, lidar)
+        for field in ("albedo", "mirror", "lidar_refl", "glass", "region"):
+            assert _same(getattr(ref, field), getattr(got, field)), (field, lidar)
+    assert (M.surface(town, p, n, prim, uv).albedo > 0).any()
+    # a town whose colours numpy would compute in float64: the kernels step aside, the result stays numpy's
+    import dataclasses
+
+    town64 = dataclasses.replace(town, obj_color=town.obj_color.astype(np.float64))
+    assert kernels.fits(town) and not kernels.fits(town64)
+    ref = M.surface(town64, p, n, prim, uv)
+    assert _same(kernels.surface(town64, p, n, prim, uv).albedo, ref.albedo)
+
+
+def test_compiled_camera_and_lidar_match_numpy(tiny_renderer, monkeypatch):
+    """render (image, depth) and scan (points) of tiny frames, plain and with the training towns' per-material
+    albedo gains: compiled and numpy paths give the same bytes (MONO_MAP_NO_C=1 selects numpy)."""
+    import dataclasses
+
+    from mono_map.data.synth import camera, lidar
+
+    kernels = _compiled()
+    fr = tiny_renderer
+    gain = np.random.default_rng(1).uniform(0.7, 1.3, (16, 3)).astype(np.float32)
+    lights = [fr.light, dataclasses.replace(fr.light, albedo_gain=gain, exposure=1.3)]
+    assert all(kernels.fits(fr.town, li) for li in lights)
+    assert not kernels.fits(fr.town, dataclasses.replace(fr.light, ambient=fr.light.ambient.astype(np.float64)))
+
+    def frame(i, light):
+        T = fr.poses[i]
+        rgb, depth = camera.render(fr.scene, fr.town, light, fr.camera, T @ fr.T_cam0_cam2,
+                                   np.random.default_rng(i), 1)
+        pts = lidar.scan(fr.scene, fr.town, T @ fr.T_cam0_velo, fr.lidar_dirs, np.random.default_rng(i + 9), 1)
+        return rgb, depth, pts
+
+    cases = [(0, lights[0]), (4, lights[1])]
+    compiled = [frame(i, li) for i, li in cases]
+    monkeypatch.setenv("MONO_MAP_NO_C", "1")
+    assert kernels.library() is None
+    for (i, li), got in zip(cases, compiled):
+        ref = frame(i, li)
+        for a, b in zip(ref, got):
+            assert _same(a, b), i
+    assert len(compiled[0][2]) > 50_000 and compiled[0][0].std() > 10
+
+
+def test_compiled_shade_matches_numpy_on_reflected_rays(tiny_renderer):
+    """shade of rays from scattered origins (the glass bounce's case: one origin per ray), without and with
+    the bounce: colours, distances and materials bit for bit."""
+    from mono_map.data.synth import camera
+
+    _compiled()
+    fr = tiny_renderer
+    rng = np.random.default_rng(2)
+    o = (fr.poses[2][:3, 3] + rng.normal(0, 3, (20000, 3))).astype(np.float32)
+    d = rng.normal(size=(20000, 3)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    for bounce in (False, True):
+        ref = camera.shade_numpy(fr.scene, fr.town, fr.light, o, d, 1, bounce)
+        got = camera.shade(fr.scene, fr.town, fr.light, o, d, 1, bounce)
+        for a, b in zip(ref, got):
+            assert _same(a, b), bounce
+
+
+def test_compiled_sensor_and_depth_match_numpy():
+    """The image's sensor model and the depth conversion on values outside the usual range too."""
+    kernels = _compiled()
+    rng = np.random.default_rng(4)
+    img = rng.normal(0.5, 0.7, (37, 53, 3)).astype(np.float32)
+    img[0, :5, 0] = [0.0, -0.0, 1.0, 255.0, -3.0]
+    vig = rng.uniform(0.8, 1.0, (37, 53, 1)).astype(np.float32)
+    noise = rng.standard_normal(img.shape, dtype=np.float32)
+    ref = img * vig
+    ref += noise * (0.006 + 0.012 * np.sqrt(np.clip(ref, 0, 1)))
+    assert _same(kernels.sensor(img, vig, noise), np.clip(ref * 255 + 0.5, 0, 255).astype(np.uint8))
+    t = rng.uniform(0, 400, 1000).astype(np.float32)
+    t[::7] = np.inf
+    zfac = rng.uniform(0.5, 1, 1000).astype(np.float32)
+    ref = np.where(np.isfinite(t), t * zfac, 0.0).astype(np.float32)
+    ref[ref > 255.0] = 0.0
+    assert _same(kernels.depth(t, zfac, 255.0), ref)
+
+
+def test_kernels_fall_back_to_numpy_without_a_compiler(tmp_path, monkeypatch, capsys):
+    """No compiler (or MONO_MAP_NO_C=1): ckernel.load gives None with a note, and the renderer its numpy path."""
+    from mono_map import ckernel
+
+    src = "int mm_one(void) { return 1; }\n"
+    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", str(tmp_path / "no_such_cc"))
+    assert ckernel.load("mm_test", src, {"mm_one": ([], None)}) is None
+    assert "compiled mm_test kernel unavailable" in capsys.readouterr().err
+    monkeypatch.setenv("MONO_MAP_NO_C", "1")
+    assert ckernel.load("mm_test", src, {"mm_one": ([], None)}) is None
+    from mono_map.data.synth import kernels
+
+    assert kernels.library() is None
+
+
+def test_ckernel_builds_once_into_its_cache(tmp_path, monkeypatch):
+    import ctypes
+    import shutil
+
+    from mono_map import ckernel
+
+    if shutil.which("cc") is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path))
+    src = "float mm_twice(float x) { return 2.0f * x; }\n"
+    lib = ckernel.load("mm_test", src, {"mm_twice": ([ctypes.c_float], ctypes.c_float)})
+    assert lib is not None and lib.mm_twice(1.25) == 2.5
+    built = sorted(tmp_path.glob("mm_test_*.so"))
+    assert len(built) == 1
+    mtime = built[0].stat().st_mtime_ns
+    assert ckernel.load("mm_test", src, {"mm_twice": ([ctypes.c_float], ctypes.c_float)}) is not None
+    assert built[0].stat().st_mtime_ns == mtime and sorted(tmp_path.glob("mm_test_*")) == built

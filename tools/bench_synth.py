@@ -21,7 +21,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+# The in-process stage split runs as a render worker does: one BLAS thread (OpenBLAS reads this when numpy is
+# imported; otherwise its threads' spinning inflates the LiDAR's CPU time). The workers get generate.WORKER_ENV.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mono_map.data.synth import kernels
 from mono_map.data.synth import materials as M
 
 FAR = 250.0            # metres; beyond = sky, depth 0
@@ -78,26 +79,69 @@ def cast_rays(scene, origins: np.ndarray, dirs: np.ndarray, nthreads: int) -> di
     Returns numpy arrays: ``t_hit`` (N,) distance (inf = no hit), ``primitive_ids`` (N,) triangle index,
     ``primitive_uvs`` (N, 2) barycentric coordinates, ``primitive_normals`` (N, 3) unit geometric normals.
     """
+    return cast_buffer(scene, ray_buffer(origins, dirs), nthreads)
+
+
+def cast_buffer(scene, rays: np.ndarray, nthreads: int) -> dict:
+    """:func:`cast_rays` of a ready (N, 6) float32 C-contiguous ray buffer (:func:`ray_buffer`'s layout)."""
     import open3d as o3d
 
-    rays = ray_buffer(origins, dirs)
     ans = scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=nthreads)
     return {k: ans[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs", "primitive_normals")}
 
 
-def _occluded(scene, origins: np.ndarray, dirs: np.ndarray, nthreads: int) -> np.ndarray:
+def occluded(scene, rays: np.ndarray, nthreads: int) -> np.ndarray:
+    """(N,) bool: whether each ray of a (N, 6) ray buffer hits anything within 400 m (shadow rays)."""
     import open3d as o3d
 
-    if len(origins) == 0:
+    if len(rays) == 0:
         return np.zeros(0, bool)
-    rays = ray_buffer(origins, dirs)
-    return scene.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=0.0, tfar=400.0,
+    return scene.test_occlusions(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)), tnear=0.0, tfar=400.0,
                                  nthreads=nthreads).numpy().astype(bool)
 
 
 def shade(scene, town, light: Lighting, origins: np.ndarray, dirs: np.ndarray, nthreads: int,
-          bounce: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Colour (N, 3) float32, hit distance t (N,) (inf = sky) and material (N,) of rays."""
+          bounce: bool = True, rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Colour (N, 3) float32, hit distance t (N,) (inf = sky) and material (N,) of rays.
+
+    ``rays``: the same rays as a ready (N, 6) buffer, if the caller has one. Runs the compiled kernels when
+    available (:mod:`kernels`; the same bits), else :func:`shade_numpy`.
+    """
+    if not kernels.fits(town, light):
+        return shade_numpy(scene, town, light, origins, dirs, nthreads, bounce)
+    ans = cast_buffer(scene, ray_buffer(origins, dirs) if rays is None else rays, nthreads)
+    h = kernels.Hits(town, ans, dirs, origins, FAR)
+    col = np.empty((len(dirs), 3), np.float32)
+    col[h.miss] = light.sky(dirs[h.miss])
+    if len(h.idx) == 0:
+        return col, h.t, h.mat
+    surf = kernels.surface(town, h.p, h.n, h.prim, h.uvs)
+    if bounce:
+        kernels.bump(town, h)
+    sun = light.sun.astype(np.float32)
+    ndl = np.clip(h.n @ sun, 0, 1)
+    if bounce:
+        li, srays = kernels.shadow_rays(h, ndl, sun)
+        ndl[li[occluded(scene, srays, nthreads)]] = 0.0
+    lit = kernels.Light(town, h, ndl, surf, light, bounce)
+    spec60 = f5 = rcol = np.zeros((0, 3), np.float32)
+    if bounce and len(lit.mi):
+        spec60 = lit.specbase ** 60
+        f5 = lit.omc ** 5
+        rcol = light.sky(lit.rdir)
+        rcol = np.where((lit.rdir[:, 1] > 0)[:, None], 0.35 * light.horizon[None, :], rcol)
+        if len(lit.traced):
+            rcol[lit.traced], _, _ = shade(scene, town, light, np.ascontiguousarray(lit.trays[:, :3]),
+                                           np.ascontiguousarray(lit.trays[:, 3:]), nthreads, bounce=False,
+                                           rays=lit.trays)
+    tr = np.exp(-h.th / np.float32(light.haze_distance))
+    kernels.final(h, lit, spec60, ndl, f5, surf.mirror, rcol, tr, light.horizon, col)
+    return col, h.t, h.mat
+
+
+def shade_numpy(scene, town, light: Lighting, origins: np.ndarray, dirs: np.ndarray, nthreads: int,
+                bounce: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`shade` in numpy (the reference of the compiled path)."""
     ans = cast_rays(scene, origins, dirs, nthreads)
     t = ans["t_hit"]
     hit = np.isfinite(t) & (t < FAR)
@@ -131,7 +175,7 @@ def shade(scene, town, light: Lighting, origins: np.ndarray, dirs: np.ndarray, n
     lit = ndl > 0
     if bounce and lit.any():
         li = np.nonzero(lit)[0]
-        occ = _occluded(scene, p[li] + n[li] * 0.03, np.broadcast_to(sun, (len(li), 3)), nthreads)
+        occ = occluded(scene, ray_buffer(p[li] + n[li] * 0.03, np.broadcast_to(sun, (len(li), 3))), nthreads)
         ndl[li[occ]] = 0.0
     up = np.clip(-n[:, 1], -1, 1)
     amb = light.ambient[None, :] * (0.65 + 0.35 * up)[:, None]
@@ -154,7 +198,8 @@ def shade(scene, town, light: Lighting, origins: np.ndarray, dirs: np.ndarray, n
         traced = np.nonzero(surf.mirror[mi] >= 0.5)[0]
         if len(traced):
             tm = mi[traced]
-            rcol[traced], _, _ = shade(scene, town, light, p[tm] + n[tm] * 0.03, rdir[traced], nthreads, bounce=False)
+            rcol[traced], _, _ = shade_numpy(scene, town, light, p[tm] + n[tm] * 0.03, rdir[traced], nthreads,
+                                             bounce=False)
         c[mi] = c[mi] * (1 - fres[:, None]) + rcol * fres[:, None]
     # haze
     tr = np.exp(-th / np.float32(light.haze_distance))[:, None]
@@ -168,9 +213,17 @@ def render(scene, town, light: Lighting, cam: PinholeCamera, T_world_cam: np.nda
     import cv2
 
     R = T_world_cam[:3, :3].astype(np.float32)
+    if kernels.fits(town, light):
+        o = T_world_cam[:3, 3].astype(np.float32)
+        dirs, rays = kernels.cam_rays(cam.dirs, R, o)
+        col, t, _ = shade(scene, town, light, np.broadcast_to(o, dirs.shape), dirs, nthreads, rays=rays)
+        depth = kernels.depth(t, cam.zfac, MAX_DEPTH).reshape(cam.height, cam.width)
+        img = cv2.GaussianBlur((col * np.float32(light.exposure)).reshape(cam.height, cam.width, 3), (3, 3), 0.6)
+        noise = rng.standard_normal(img.shape, dtype=np.float32)
+        return kernels.sensor(img, cam.vignette, noise), depth
     dirs = cam.dirs[:, :1] * R[:, 0] + cam.dirs[:, 1:2] * R[:, 1] + cam.dirs[:, 2:] * R[:, 2]
     origins = np.broadcast_to(T_world_cam[:3, 3].astype(np.float32), dirs.shape)
-    col, t, _ = shade(scene, town, light, origins, dirs, nthreads)
+    col, t, _ = shade_numpy(scene, town, light, origins, dirs, nthreads)
     depth = np.where(np.isfinite(t), t * cam.zfac, 0.0).astype(np.float32)
     depth[depth > MAX_DEPTH] = 0.0
     depth = depth.reshape(cam.height, cam.width)

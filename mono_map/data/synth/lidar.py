@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mono_map.data.synth import kernels
 from mono_map.data.synth import materials as M
 from mono_map.data.synth.camera import cast_rays
 
@@ -37,9 +38,62 @@ def ray_directions() -> np.ndarray:
     return d.reshape(-1, 3)
 
 
+def glass_pass(scene, town, p: np.ndarray, d: np.ndarray, t: np.ndarray, n: np.ndarray, refl: np.ndarray,
+               glass: np.ndarray, u: np.ndarray, nthreads: int, surface) -> np.ndarray:
+    """Glass hits: the ray passes through (re-cast from just behind the pane: ``t``, ``n``, ``refl`` updated in
+    place), is lost, or returns from the pane (low reflectance), by the uniform draw ``u`` of each hit.
+
+    ``p``, ``d``: hit points and ray directions (K, 3); ``surface``: materials.surface or its compiled twin.
+    Returns the (K,) bool mask of lost rays.
+    """
+    through = glass & (u < GLASS_PASS)
+    lost = glass & (u >= GLASS_PASS) & (u < GLASS_PASS + GLASS_DROP)
+    ti = np.nonzero(through)[0]
+    if len(ti):
+        o2 = p[ti] + 0.05 * d[ti]
+        a2 = cast_rays(scene, o2, d[ti], nthreads)
+        t2 = a2["t_hit"]
+        ok = np.isfinite(t2) & (t[ti] + t2 < MAX_RANGE)
+        lost[ti[~ok]] = True
+        tj = ti[ok]
+        t[tj] = t[tj] + 0.05 + t2[ok]
+        p2 = o2[ok] + t2[ok, None] * d[tj]
+        n[tj] = a2["primitive_normals"][ok]
+        s2 = surface(town, p2, n[tj], a2["primitive_ids"][ok].astype(np.int64), a2["primitive_uvs"][ok], lidar=True)
+        refl[tj] = np.where(s2.glass, 0.05, s2.lidar_refl)
+    return lost
+
+
 def scan(scene, town, T_world_velo: np.ndarray, dirs_velo: np.ndarray, rng: np.random.Generator,
          nthreads: int = 0) -> np.ndarray:
-    """One sweep: (M, 4) float32 x y z reflectance in the velodyne frame."""
+    """One sweep: (M, 4) float32 x y z reflectance in the velodyne frame.
+
+    Runs the compiled kernels when available (:mod:`kernels`; the same bits), else :func:`scan_numpy`.
+    """
+    if not kernels.fits(town):
+        return scan_numpy(scene, town, T_world_velo, dirs_velo, rng, nthreads)
+    R = T_world_velo[:3, :3].astype(np.float32)
+    o = T_world_velo[:3, 3].astype(np.float32)
+    dirs_velo = dirs_velo.astype(np.float32)
+    dw = dirs_velo @ R.T
+    origins = np.broadcast_to(o, dw.shape)
+    rng_u = rng.random(len(dw))
+    h = kernels.Hits(town, cast_rays(scene, origins, dw, nthreads), dw, origins, MAX_RANGE, face_ray=False)
+    idx, t, d, p, n = h.idx, h.th, h.d, h.p, h.n
+    surf = kernels.surface(town, p, n, h.prim, h.uvs, lidar=True)
+    refl = surf.lidar_refl
+    lost = glass_pass(scene, town, p, d, t, n, refl, surf.glass, rng_u[idx], nthreads, kernels.surface)
+    idx, t, refl, cosi, p_ret = kernels.lidar_returns(h, lost, refl, MAX_RANGE)
+    keep = rng.random(len(idx)) < p_ret
+    n_keep = int(np.count_nonzero(keep))
+    noise_r = rng.normal(0, RANGE_NOISE, n_keep).astype(np.float32)
+    noise_i = rng.normal(0, 0.02, n_keep).astype(np.float32)
+    return kernels.lidar_points(keep, idx, t, refl, cosi, noise_r, noise_i, dirs_velo)
+
+
+def scan_numpy(scene, town, T_world_velo: np.ndarray, dirs_velo: np.ndarray, rng: np.random.Generator,
+               nthreads: int = 0) -> np.ndarray:
+    """:func:`scan` in numpy (the reference of the compiled path)."""
     R = T_world_velo[:3, :3].astype(np.float32)
     o = T_world_velo[:3, 3].astype(np.float32)
     dirs_velo = dirs_velo.astype(np.float32)
@@ -56,23 +110,7 @@ def scan(scene, town, T_world_velo: np.ndarray, dirs_velo: np.ndarray, rng: np.r
     prim = ans["primitive_ids"][idx].astype(np.int64)
     surf = M.surface(town, p, n, prim, ans["primitive_uvs"][idx], lidar=True)
     refl = surf.lidar_refl
-    # glass: pass through (re-cast from just behind the glass), drop, or return from the pane (low reflectance)
-    u = rng_u[idx]
-    through = surf.glass & (u < GLASS_PASS)
-    lost = surf.glass & (u >= GLASS_PASS) & (u < GLASS_PASS + GLASS_DROP)
-    ti = np.nonzero(through)[0]
-    if len(ti):
-        o2 = p[ti] + 0.05 * d[ti]
-        a2 = cast_rays(scene, o2, d[ti], nthreads)
-        t2 = a2["t_hit"]
-        ok = np.isfinite(t2) & (t[ti] + t2 < MAX_RANGE)
-        lost[ti[~ok]] = True
-        tj = ti[ok]
-        t[tj] = t[tj] + 0.05 + t2[ok]
-        p2 = o2[ok] + t2[ok, None] * d[tj]
-        n[tj] = a2["primitive_normals"][ok]
-        s2 = M.surface(town, p2, n[tj], a2["primitive_ids"][ok].astype(np.int64), a2["primitive_uvs"][ok], lidar=True)
-        refl[tj] = np.where(s2.glass, 0.05, s2.lidar_refl)
+    lost = glass_pass(scene, town, p, d, t, n, refl, surf.glass, rng_u[idx], nthreads, M.surface)
     keep = ~lost
     idx, t, d, n, refl = idx[keep], t[keep], d[keep], n[keep], refl[keep]
     cosi = np.abs(np.einsum("ij,ij->i", n, d))

@@ -72,7 +72,7 @@ def surface(town, p: np.ndarray, n: np.ndarray, prim: np.ndarray, uvs: np.ndarra
             a, r, reg = _ground(town, P, prim[idx], uvs[idx], lidar)
             alb[idx], refl[idx], region[idx] = a, r, reg
         elif lidar and m != FACADE:
-            refl[idx] = _LIDAR_REFL.get(int(m), 0.3)
+            refl[idx] = LIDAR_REFL.get(int(m), 0.3)
             if m == CAR_PAINT:
                 oid = town.tri_object[prim[idx]]
                 black = (town.obj_flags[oid] & 1) > 0
@@ -132,8 +132,14 @@ def surface(town, p: np.ndarray, n: np.ndarray, prim: np.ndarray, uvs: np.ndarra
     return Surface(albedo=np.clip(alb, 0, 1), mirror=mirror, lidar_refl=refl, glass=glass, region=region)
 
 
-_LIDAR_REFL = {CURB: 0.35, CAR_GLASS: 0.05, TYRE: 0.10, TRUNK: 0.30, FOLIAGE: 0.40, METAL: 0.45, FENCE: 0.30,
-               LAMP: 0.60}
+LIDAR_REFL = {CURB: 0.35, CAR_GLASS: 0.05, TYRE: 0.10, TRUNK: 0.30, FOLIAGE: 0.40, METAL: 0.45, FENCE: 0.30,
+              LAMP: 0.60}
+
+
+def road_track(l: np.ndarray, lane: float) -> np.ndarray:
+    """Darkening weight (0..2) of the two tyre tracks of a lane at lateral offsets ``l`` (m) of road hits."""
+    a = np.abs(l + lane / 2)
+    return np.exp(-(((a - lane / 2 + 0.8) / 0.35) ** 2)) + np.exp(-(((a - lane / 2 - 0.8) / 0.35) ** 2))
 
 
 def _face_tangent(n: np.ndarray) -> np.ndarray:
@@ -169,8 +175,7 @@ def _ground(town, P, prim, uvs, lidar=False):
         refl[i] = np.where(mark, 0.78, 0.10 + 0.08 * blot)
         if not lidar:
             grain = cell_noise(seed + 2, xi, zi, 0.05)
-            a = np.abs(li + lane / 2)
-            track = np.exp(-(((a - lane / 2 + 0.8) / 0.35) ** 2)) + np.exp(-(((a - lane / 2 - 0.8) / 0.35) ** 2))
+            track = road_track(li, lane)
             g = 0.21 + 0.08 * blot + 0.07 * (grain - 0.5) - 0.025 * track
             patch = value_noise(seed + 3, xi, zi, 7.0) > 0.78
             g = np.where(patch, g * 0.8, g)

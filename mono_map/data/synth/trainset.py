@@ -210,8 +210,14 @@ def render_trainset(root: Path, specs: list[TownSpec], workers: int = 2, log=pri
     root.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     total = 0
+    from mono_map.data.synth import kernels
+    from mono_map.data.synth.generate import WORKER_ENV, environment
+
+    kernels.library()                       # compile the renderer's kernels once, before the workers load them
     ctx = mp.get_context("spawn")
-    with ctx.Pool(workers) as pool:
+    with environment(WORKER_ENV):           # one BLAS thread per worker (set before the workers import numpy)
+        pool = ctx.Pool(workers)
+    with pool:
         for name, n, sec in pool.imap_unordered(_worker, [(str(root), s) for s in specs], chunksize=1):
             total += n
             el = time.perf_counter() - t0
