@@ -12,15 +12,12 @@ OctoMap's own build.
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import os
-import subprocess
-import sys
-import tempfile
 import threading
-from pathlib import Path
 
 import numpy as np
+
+from mono_map import ckernel
 
 C_SOURCE = r"""
 #include <math.h>
@@ -799,71 +796,46 @@ int64_t mm_ot_leaves(const uint8_t *data, int64_t n, int64_t cap, int64_t *keys,
 _LIB = None
 _TRIED = False
 
-
-def _cache_dir() -> Path:
-    env = os.environ.get("MONO_MAP_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "mono_map"
+_P, _I64, _F32, _F64, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_double, ctypes.c_int
+# every exported function: (argtypes, restype)
+_SIGNATURES = {
+    "mm_ray_cells": ([_P, _P, _P, _P, _I64, _F64, _P, _P, _I64, _P, _I64, _P, _I64], _I64),
+    "mm_ray_weights": ([_P, _P, _P, _P, _P, _P, _P, _P, _I64, _P, _P, _P, _I64, _I64, _F32, _F32, _F32, _F64, _P, _P,
+                        _I64, _P, _I64, _P, _P, _I64, _INT, _F32, _P], _I64),
+    "mm_far_depth": ([_P, _P, _P, _I64, _I64, _I64, _F64, _P], None),
+    "mm_point_keys": ([_P, _I64, _F64, _I64, _P, _P, _P, _P], _I64),
+    "mm_unique_cells": ([_P, _I64, _P, _P, _P, _I64, _F64, _I64, _P, _P], _I64),
+    "mm_box_keys": ([_P, _I64, _P, _P, _P], None),
+    "mm_mirror_alloc": ([_P, _I64, _P, _P, _P, _I64, _P], _I64),
+    "mm_mirror_apply": ([_P, _I64, _P, _F32, _P, _P, _P, _P, _P, _F32, _F32, _F32, _P, _P], _I64),
+    "mm_ot_nodes": ([_P, _P, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _P], _I64),
+    "mm_ot_leaves": ([_P, _I64, _I64, _P, _P, _P], _I64),
+    "mm_ray_mass": ([_P, _P, _I64, _I64, _F64, _P, _I64, _F64, _P, _P, _P], None),
+    "mm_acc_merge": ([_P, _I64, _P, _P, _P], _I64),
+    "mm_acc_take": ([_P, _I64, _P, _P], None),
+    "mm_quantise_split": ([_P, _P, _I64, _F32, _F32, _F64, _INT, _P, _P, _P], _I64),
+    "mm_check_rows": ([_P, _P, _I64, _I64, _F64, _P, _P, _P], None),
+}
 
 
 def load_kernel():
-    """The compiled ``mm_ray_cells`` (ctypes function; ``.weights`` is ``mm_ray_weights``) or None if
-    unavailable/disabled."""
+    """The compiled ``mm_ray_cells`` (ctypes function; the other kernels are its attributes without the
+    ``mm_`` prefix, ``.weights`` is ``mm_ray_weights``) or None if unavailable/disabled (:mod:`mono_map.ckernel`)."""
     global _LIB, _TRIED
-    if os.environ.get("MONO_MAP_NO_C", "0") == "1":
+    if ckernel.disabled():
         return None
     if _TRIED:
         return _LIB
     _TRIED = True
-    digest = hashlib.sha1(C_SOURCE.encode()).hexdigest()[:12]
-    lib_path = _cache_dir() / f"mm_dda_{digest}_{sys.implementation.cache_tag}.so"
-    try:
-        if not lib_path.is_file():
-            lib_path.parent.mkdir(parents=True, exist_ok=True)
-            cc = os.environ.get("CC", "cc")
-            with tempfile.TemporaryDirectory() as tmp:
-                src = Path(tmp) / "mm_dda.c"
-                src.write_text(C_SOURCE)
-                tmp_so = Path(tmp) / "mm_dda.so"
-                subprocess.run([cc, "-O2", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math",
-                                "-o", str(tmp_so), str(src), "-lm"],
-                               check=True, capture_output=True, timeout=120)
-                os.replace(tmp_so, lib_path)
-        lib = ctypes.CDLL(str(lib_path))
-        fn = lib.mm_ray_cells
-        p = ctypes.c_void_p
-        fn.argtypes = [p, p, p, p, ctypes.c_int64, ctypes.c_double, p, p, ctypes.c_int64, p, ctypes.c_int64, p,
-                       ctypes.c_int64]
-        fn.restype = ctypes.c_int64
-        wfn = lib.mm_ray_weights
-        i64, f32, f64 = ctypes.c_int64, ctypes.c_float, ctypes.c_double
-        wfn.argtypes = [p, p, p, p, p, p, p, p, i64, p, p, p, i64, i64, f32, f32, f32, f64, p, p, i64, p, i64, p, p,
-                        i64, ctypes.c_int, f32, p]
-        wfn.restype = ctypes.c_int64
-        fn.weights = wfn
-        ffn = lib.mm_far_depth
-        ffn.argtypes = [p, p, p, i64, i64, i64, f64, p]
-        ffn.restype = None
-        fn.far_depth = ffn
-        for name, args in (("point_keys", [p, i64, f64, i64, p, p, p, p]),
-                           ("unique_cells", [p, i64, p, p, p, i64, f64, i64, p, p]),
-                           ("box_keys", [p, i64, p, p, p]),
-                           ("mirror_alloc", [p, i64, p, p, p, i64, p]),
-                           ("mirror_apply", [p, i64, p, f32, p, p, p, p, p, f32, f32, f32, p, p]),
-                           ("ot_nodes", [p, p, p, i64, p, i64, p, p, p, p, p, p]),
-                           ("ot_leaves", [p, i64, i64, p, p, p]),
-                           ("ray_mass", [p, p, i64, i64, f64, p, i64, f64, p, p, p]),
-                           ("acc_merge", [p, i64, p, p, p]),
-                           ("acc_take", [p, i64, p, p]),
-                           ("quantise_split", [p, p, i64, f32, f32, f64, ctypes.c_int, p, p, p]),
-                           ("check_rows", [p, p, i64, i64, f64, p, p, p])):
-            cfn = getattr(lib, "mm_" + name)
-            cfn.argtypes = args
-            cfn.restype = None if name in ("box_keys", "ray_mass", "check_rows", "acc_take") else i64
-            setattr(fn, name, cfn)
-        _LIB = fn
-    except (OSError, subprocess.SubprocessError) as exc:
-        print(f"mono-map: note: compiled ray kernel unavailable ({type(exc).__name__}); using numpy", file=sys.stderr)
-        _LIB = None
+    lib = ckernel.load("mm_dda", C_SOURCE, _SIGNATURES)
+    if lib is None:
+        return None
+    fn = lib.mm_ray_cells
+    fn.weights = lib.mm_ray_weights
+    for name in _SIGNATURES:
+        if name not in ("mm_ray_cells", "mm_ray_weights"):
+            setattr(fn, name[3:], getattr(lib, name))
+    _LIB = fn
     return _LIB
 
 
