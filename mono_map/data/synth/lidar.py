@@ -64,6 +64,16 @@ def glass_pass(scene, town, p: np.ndarray, d: np.ndarray, t: np.ndarray, n: np.n
     return lost
 
 
+def sweep_rays(T_world_velo: np.ndarray, dirs_velo: np.ndarray, rng: np.random.Generator):
+    """A sweep's rays: (float32 velodyne-frame directions (N, 3), world directions (N, 3), world origins (N, 3,
+    a broadcast view), the glass draw (N,) uniform — the sweep's first draw from ``rng``)."""
+    R = T_world_velo[:3, :3].astype(np.float32)
+    o = T_world_velo[:3, 3].astype(np.float32)
+    dirs_velo = dirs_velo.astype(np.float32)
+    dw = dirs_velo @ R.T
+    return dirs_velo, dw, np.broadcast_to(o, dw.shape), rng.random(len(dw))
+
+
 def scan(scene, town, T_world_velo: np.ndarray, dirs_velo: np.ndarray, rng: np.random.Generator,
          nthreads: int = 0) -> np.ndarray:
     """One sweep: (M, 4) float32 x y z reflectance in the velodyne frame.
@@ -72,12 +82,7 @@ def scan(scene, town, T_world_velo: np.ndarray, dirs_velo: np.ndarray, rng: np.r
     """
     if not kernels.fits(town):
         return scan_numpy(scene, town, T_world_velo, dirs_velo, rng, nthreads)
-    R = T_world_velo[:3, :3].astype(np.float32)
-    o = T_world_velo[:3, 3].astype(np.float32)
-    dirs_velo = dirs_velo.astype(np.float32)
-    dw = dirs_velo @ R.T
-    origins = np.broadcast_to(o, dw.shape)
-    rng_u = rng.random(len(dw))
+    dirs_velo, dw, origins, rng_u = sweep_rays(T_world_velo, dirs_velo, rng)
     h = kernels.Hits(town, cast_rays(scene, origins, dw, nthreads), dw, origins, MAX_RANGE, face_ray=False)
     idx, t, d, p, n = h.idx, h.th, h.d, h.p, h.n
     surf = kernels.surface(town, p, n, h.prim, h.uvs, lidar=True)
@@ -94,12 +99,7 @@ def scan(scene, town, T_world_velo: np.ndarray, dirs_velo: np.ndarray, rng: np.r
 def scan_numpy(scene, town, T_world_velo: np.ndarray, dirs_velo: np.ndarray, rng: np.random.Generator,
                nthreads: int = 0) -> np.ndarray:
     """:func:`scan` in numpy (the reference of the compiled path)."""
-    R = T_world_velo[:3, :3].astype(np.float32)
-    o = T_world_velo[:3, 3].astype(np.float32)
-    dirs_velo = dirs_velo.astype(np.float32)
-    dw = dirs_velo @ R.T
-    origins = np.broadcast_to(o, dw.shape)
-    rng_u = rng.random(len(dw))
+    dirs_velo, dw, origins, rng_u = sweep_rays(T_world_velo, dirs_velo, rng)
     ans = cast_rays(scene, origins, dw, nthreads)
     t = ans["t_hit"]
     idx = np.nonzero(np.isfinite(t) & (t < MAX_RANGE))[0]
