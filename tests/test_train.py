@@ -166,3 +166,19 @@ def test_bf16_autocast_and_channels_last_train(tmp_path):
     assert meta["step"] == 3 and np.isfinite(meta["final_loss"])
     model, _ = load_checkpoint(tmp_path / "out.pt")
     assert all(p.dtype == torch.float32 for p in model.parameters())   # weights stay fp32
+
+
+def test_command_line_overrides(tmp_path):
+    """`mono-map train --steps/--output/--precision/--threads`: None keeps the config, a value replaces it,
+    a bad value is refused naming the option."""
+    from mono_map.depth.train import override
+
+    cfg = _cfg(tmp_path, steps=4, bf16=True)
+    assert override(cfg) == cfg
+    o = override(cfg, steps=9, output="x.pt", precision="fp32", threads=2, data_root="d")
+    assert (o.train.steps, o.train.output, o.train.bf16, o.train.threads, o.data.root) == (9, "x.pt", False, 2, "d")
+    assert o.train.lr == cfg.train.lr and o.model == cfg.model
+    assert override(_cfg(tmp_path, bf16=False), precision="bf16").train.bf16 is True
+    for kw, opt in ((dict(threads=0), "--threads"), (dict(steps=0), "--steps"), (dict(precision="fp16"), "--precision")):
+        with pytest.raises(MonoMapError, match=opt):
+            override(cfg, **kw)

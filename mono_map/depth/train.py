@@ -16,7 +16,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -341,6 +341,24 @@ def outputs_at_targets(low, depth):
 
 
 # ------------------------------------------------------------------ distributed
+def override(cfg: RunConfig, steps: int | None = None, output: str | None = None, data_root: str | None = None,
+             precision: str | None = None, threads: int | None = None) -> RunConfig:
+    """``cfg`` with the command line's overrides (None keeps the config's value): ``steps``, ``output``
+    (final checkpoint path), ``data_root``, ``precision`` ("fp32" or "bf16" autocast) and ``threads``."""
+    if steps is not None and steps < 1:
+        raise MonoMapError(f"--steps: must be >= 1, got {steps}")
+    if threads is not None and threads < 1:
+        raise MonoMapError(f"--threads: must be >= 1, got {threads}")
+    if precision not in (None, "fp32", "bf16"):
+        raise MonoMapError(f"--precision: must be fp32 or bf16, got {precision!r}")
+    t = cfg.train
+    t = replace(t, steps=t.steps if steps is None else steps, output=t.output if output is None else output,
+                bf16=t.bf16 if precision is None else precision == "bf16",
+                threads=t.threads if threads is None else threads)
+    data = cfg.data if data_root is None else replace(cfg.data, root=data_root)
+    return replace(cfg, train=t, data=data)
+
+
 def dist_env() -> tuple[int, int]:
     """(rank, world_size) from torchrun's environment (1 process without it)."""
     return int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1"))
