@@ -462,3 +462,28 @@ def test_look_ahead_prediction_gives_the_frame_by_frame_maps(tiny_root):
         run_builders(seq, builders, frames, show_progress=False)
     assert sorted(failing.threads) == [0, 1, 2] and rec.closed
     assert [u.index for u in rec.updates] == [0, 1]
+
+
+def test_maps_built_in_threads_at_once_equal_maps_built_alone(tiny_root):
+    """The integrators' per-frame buffers (visited bitmap, accumulators) are per thread: maps built at the
+    same time in several threads are those built one after another (keep, distribution and LiDAR maps)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from mono_map.mapping.octree import tree_leaves
+
+    seq = open_sequence(tiny_root, "tiny")
+    specs = [dict(source="mono", keep=1.0), dict(source="mono", integrate="distribution"),
+             dict(source="mono", keep=0.5), dict(source="lidar")]
+    frames = range(0, 4)
+
+    def build(spec):
+        res = build_map(seq, frames=frames, predictor=NoisyGroundTruthPredictor(), show_progress=False, **spec)
+        return tree_leaves(res.tree)
+
+    alone = [build(s) for s in specs]
+    for _ in range(2):
+        with ThreadPoolExecutor(len(specs)) as ex:
+            together = list(ex.map(build, specs))
+        for spec, a, b in zip(specs, alone, together):
+            assert np.array_equal(a.start, b.start) and np.array_equal(a.length, b.length), spec
+            assert np.array_equal(a.value, b.value), spec

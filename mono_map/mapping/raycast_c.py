@@ -1055,16 +1055,26 @@ def _weights_run(fn, c: dict, r: dict, order: np.ndarray, starts: np.ndarray, st
         cap *= 2
 
 
-_ACC: list[np.ndarray] = [np.zeros(0, dtype=np.float32), np.zeros(0, dtype=np.float32)]
+_BUFFERS = threading.local()   # per calling thread: maps built in different threads never share a buffer
+
+
+def _buffers():
+    """This thread's per-frame buffers: the visited bitmap ``mark`` and the two accumulators ``acc``."""
+    b = _BUFFERS
+    if not hasattr(b, "mark"):
+        b.mark = np.zeros(0, dtype=np.uint8)
+        b.acc = [np.zeros(0, dtype=np.float32), np.zeros(0, dtype=np.float32)]
+    return b
 
 
 def _zeroed_accumulator(slot: int, size: int) -> np.ndarray:
-    """Zeroed float32 buffer ``slot`` (one per thread) of at least ``size`` cells, reused across frames
-    (allocating and faulting in hundreds of MB per frame would cost more than the rays); callers zero
+    """Zeroed float32 buffer ``slot`` (one per kernel thread) of at least ``size`` cells, reused across
+    frames (allocating and faulting in hundreds of MB per frame would cost more than the rays); callers zero
     what they touched."""
-    if len(_ACC[slot]) < size:
-        _ACC[slot] = np.zeros(max(size, int(len(_ACC[slot]) * 1.25)), dtype=np.float32)
-    return _ACC[slot]
+    acc = _buffers().acc
+    if len(acc[slot]) < size:
+        acc[slot] = np.zeros(max(size, int(len(acc[slot]) * 1.25)), dtype=np.float32)
+    return acc[slot]
 
 
 def combine_updates(lin: np.ndarray, dl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1249,21 +1259,21 @@ def mirror_apply_c(fn, keys: np.ndarray, update, table: np.ndarray, table_lo: np
     return n_a + n_b, np.concatenate([f_a, f_b])
 
 
-_MARK: list[np.ndarray] = [np.zeros(0, dtype=np.uint8)]
-
-
 def release_buffers() -> None:
-    """Free the per-frame buffers kept between frames (visited bitmap, accumulators): at the end of a build."""
-    _MARK[0] = np.zeros(0, dtype=np.uint8)
-    _ACC[0] = _ACC[1] = np.zeros(0, dtype=np.float32)
+    """Free this thread's per-frame buffers kept between frames (visited bitmap, accumulators): at the end
+    of a build."""
+    b = _buffers()
+    b.mark = np.zeros(0, dtype=np.uint8)
+    b.acc = [np.zeros(0, dtype=np.float32), np.zeros(0, dtype=np.float32)]
 
 
 def zeroed_bitmap(size: int) -> np.ndarray:
-    """A zeroed uint8 bitmap of ``size`` cells, reused across frames (as the accumulators); the caller
-    zeroes the cells it marked before the next frame."""
-    if len(_MARK[0]) < size:
-        _MARK[0] = np.zeros(max(size, int(len(_MARK[0]) * 1.25)), dtype=np.uint8)
-    return _MARK[0][:size]
+    """A zeroed uint8 bitmap of ``size`` cells, this thread's, reused across frames (as the accumulators);
+    the caller zeroes the cells it marked before the next frame."""
+    b = _buffers()
+    if len(b.mark) < size:
+        b.mark = np.zeros(max(size, int(len(b.mark) * 1.25)), dtype=np.uint8)
+    return b.mark[:size]
 
 
 def _blocks_in_code_order(block_codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
