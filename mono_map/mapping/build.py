@@ -15,8 +15,8 @@ pixel's whole depth distribution sets the updates along its ray instead
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Mapping, Sequence
 

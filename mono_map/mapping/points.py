@@ -30,7 +30,7 @@ def rigid_columns(T: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) ->
     T = np.asarray(T, dtype=np.float64)
     out = np.empty((len(x), 3), dtype=np.float64)
     acc, tmp = np.empty(len(x)), np.empty(len(x))
-    for r in range(3):          # T[r,0]·x + T[r,1]·y + T[r,2]·z + T[r,3], in that order (the same bits as before)
+    for r in range(3):   # T[r,0]·x + T[r,1]·y + T[r,2]·z + T[r,3] in this order: the bits of the (N, 3) form
         np.multiply(x, T[r, 0], out=acc)
         np.multiply(y, T[r, 1], out=tmp)
         acc += tmp

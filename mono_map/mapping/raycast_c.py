@@ -855,12 +855,16 @@ def _threads() -> int:
         return min(2, os.cpu_count() or 1)
 
 
+_POOL_LOCK = threading.Lock()
+
+
 def _pool():
     global _POOL
-    if _POOL is None:
-        from concurrent.futures import ThreadPoolExecutor
+    with _POOL_LOCK:   # builds in several threads share the one helper thread (each waits for its own half)
+        if _POOL is None:
+            from concurrent.futures import ThreadPoolExecutor
 
-        _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mm-dda")
+            _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mm-dda")
     return _POOL
 
 
