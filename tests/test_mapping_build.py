@@ -487,3 +487,24 @@ def test_maps_built_in_threads_at_once_equal_maps_built_alone(tiny_root):
         for spec, a, b in zip(specs, alone, together):
             assert np.array_equal(a.start, b.start) and np.array_equal(a.length, b.length), spec
             assert np.array_equal(a.value, b.value), spec
+
+
+def test_demo_end_to_end_on_the_tiny_sequence(tiny_root, tmp_path, capsys):
+    """`mono-map demo` with the shipped model on 3 frames: the three maps, the table, the recording, and a
+    last line with the time of each phase; run again, it reuses every map."""
+    out = tmp_path / "out"
+    argv = ["demo", "--seq", "tiny", "--data-root", str(tiny_root), "--frames", "3", "--out", str(out)]
+    assert cli_main(argv) == 0
+    text = capsys.readouterr().out
+    last = text.strip().splitlines()[-1]
+    assert last.startswith("demo finished in ")
+    for phase in ("model and sequence", "LiDAR-FOV", "monocular maps", "table"):
+        assert f"{phase} " in last, last
+    names = {p.name for p in out.iterdir()}
+    assert {"lidar-fov_res0.2_f0-3.bt", "mono-keep0.8_res0.2_f0-3.bt", "mono-keep1_res0.2_f0-3.bt",
+            "demo_mono-keep0.8_f0-3.rrd", "table_f0-3_res0.2.md"} <= names, names
+    assert "| mono keep 0.8 |" in text
+    assert cli_main(argv) == 0
+    again = capsys.readouterr().out
+    assert "[1/3]" not in again and "[2/3]" not in again
+    assert "LiDAR-FOV" not in again.strip().splitlines()[-1]
