@@ -1266,9 +1266,7 @@ def mirror_apply_c(fn, keys: np.ndarray, update, table: np.ndarray, table_lo: np
 def release_buffers() -> None:
     """Free this thread's per-frame buffers kept between frames (visited bitmap, accumulators): at the end
     of a build."""
-    b = _buffers()
-    b.mark = np.zeros(0, dtype=np.uint8)
-    b.acc = [np.zeros(0, dtype=np.float32), np.zeros(0, dtype=np.float32)]
+    vars(_BUFFERS).clear()   # the next _buffers() call starts this thread's buffers empty
 
 
 def zeroed_bitmap(size: int) -> np.ndarray:
