@@ -8,6 +8,7 @@ writes pictures and a rerun recording under ``outputs/``.
 from __future__ import annotations
 
 import argparse
+from contextlib import contextmanager
 
 from mono_map.io import prepare_output_dir
 from mono_map.paths import sequence_output_dir
@@ -47,6 +48,12 @@ def run(args: argparse.Namespace) -> int:
     digest = model_digest(None)
     seq = prepare_sequence(args.data_root, args.seq, selection)
     phases = [("model and sequence", time.perf_counter() - t0)]    # the sequence is rendered here if missing
+
+    @contextmanager
+    def timed(name: str):
+        t = time.perf_counter()
+        yield
+        phases.append((name, time.perf_counter() - t))
     frames = selection.resolve(len(seq))
     print(f"mono-map demo: sequence {seq.name} ({'synthetic' if seq.is_synthetic else 'real KITTI'}, "
           f"{len(seq)} frames under {seq.root}); {selection.describe(frames)}", flush=True)
@@ -58,9 +65,8 @@ def run(args: argparse.Namespace) -> int:
     ref_bt = ref_job.path(out_dir)
     if not reusable(ref_bt, ref_job)[0]:
         print("[1/3] LiDAR-FOV reference map", flush=True)
-        t = time.perf_counter()
-        build_and_write(ref_job, seq, out_dir)
-        phases.append(("LiDAR-FOV", time.perf_counter() - t))
+        with timed("LiDAR-FOV"):
+            build_and_write(ref_job, seq, out_dir)
     # 2. the uncertainty-aware monocular map, streamed to a rerun recording while it grows, and the
     #    vanilla monocular map (keep 1.0) built in the same pass: each frame is predicted once for both
     rrd = out_dir / f"demo_mono-keep0.8_{tag}.rrd"
@@ -80,15 +86,13 @@ def run(args: argparse.Namespace) -> int:
     if requests:
         keeps = ", ".join(f"keep {r.job.keep:.1f}" for r in requests)
         print(f"[2/3] monocular maps ({keeps}; keep 0.8 recorded to {rrd}), one prediction per frame", flush=True)
-        t = time.perf_counter()
-        build_and_write_all(requests, seq, out_dir, predictor=predictor)
-        phases.append(("monocular maps", time.perf_counter() - t))
+        with timed("monocular maps"):
+            build_and_write_all(requests, seq, out_dir, predictor=predictor)
     # 3. the vanilla monocular map and the table (maps built by the same job are reused)
     print("[3/3] the mapping table", flush=True)
-    t = time.perf_counter()
-    run_table(TableJob(seq=args.seq, data_root=args.data_root, frames=selection, out=str(out_dir),
-                       keeps=(0.8, 1.0), stride=1, model=None, octomap=cfg, paper_only=True))
-    phases.append(("table", time.perf_counter() - t))
+    with timed("table"):
+        run_table(TableJob(seq=args.seq, data_root=args.data_root, frames=selection, out=str(out_dir),
+                           keeps=(0.8, 1.0), stride=1, model=None, octomap=cfg, paper_only=True))
     print(f"recording: {rrd}  (open it with: mono-map view {rrd})")
     print(f"demo finished in {time.perf_counter() - t0:.0f} s ("
           + ", ".join(f"{name} {sec:.0f} s" for name, sec in phases) + ")")
