@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import shutil
 
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ from mono_map.mapping.build import build_map
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.jobs import MapJob, build_and_write, reusable
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor
+from mono_map.mapping import points
 from mono_map.mapping.points import camera_origin, in_camera_fov, lidar_to_world, pixels_to_world
 from mono_map.mapping.select import select_pixels
 
@@ -34,6 +37,32 @@ def test_backprojection_inverts_projection():
     v, u = np.nonzero(mask)
     assert np.allclose(uv, np.stack([u, v], 1), atol=1e-6)
     assert np.allclose(z, depth[mask], rtol=1e-6)
+
+
+def test_compiled_backprojection_gives_the_numpy_bits(monkeypatch):
+    """The compiled pixels_to_world: raster order and numpy's float64 bits (skewed K, a rotated and far
+    translated pose, a ragged mask); float64 depth and MONO_MAP_NO_C=1 take the numpy path, same result."""
+    if points.library() is None:
+        assert shutil.which(os.environ.get("CC", "cc")) is None, "a C compiler is here but the kernel did not build"
+        pytest.skip("no C compiler on this machine: only the numpy back-projection exists")
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.5, 90, (37, 53)).astype(np.float32)
+    mask = rng.random(depth.shape) < 0.6
+    Ks = K.copy()
+    Ks[0, 1] = 0.7
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    T = geometry.make_pose(q, rng.normal(size=3) * 300)
+    ref = points.pixels_to_world_numpy(depth, mask, Ks, T)
+    got = pixels_to_world(depth, mask, Ks, T)
+    assert got.shape == (mask.sum(), 3) and got.dtype == np.float64
+    assert np.array_equal(got, ref)                       # bit for bit, not allclose
+    assert np.array_equal(pixels_to_world(depth.astype(np.float64), mask, Ks, T), ref)
+    assert pixels_to_world(depth, np.zeros_like(mask), Ks, T).shape == (0, 3)
+    with pytest.raises(ValueError, match="one H×W shape"):
+        pixels_to_world(depth, mask[:, :-1], Ks, T)
+    monkeypatch.setenv("MONO_MAP_NO_C", "1")
+    assert points.library() is None
+    assert np.array_equal(pixels_to_world(depth, mask, Ks, T), ref)
 
 
 def test_hand_built_pose_places_point():

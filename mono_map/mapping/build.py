@@ -167,7 +167,6 @@ class FrameInputs:
         self.seq, self.i, self.probs_steps = seq, i, dict(probs_steps or {})
         self._image: np.ndarray | None = None
         self._predictions: dict[int, object] = {}
-        self._valid_points: dict[tuple, np.ndarray] = {}
 
     def image(self) -> np.ndarray:
         """H×W×3 uint8 RGB image_2 of the frame."""
@@ -183,15 +182,6 @@ class FrameInputs:
                                                    with_probs=key in self.probs_steps,
                                                    probs_step=self.probs_steps.get(key, 1))
         return self._predictions[key]
-
-    def kept_points(self, key: tuple, depth: np.ndarray, valid: np.ndarray, kept: np.ndarray, K: np.ndarray,
-                    T_world_cam2: np.ndarray) -> np.ndarray:
-        """(N, 3) world points of the ``kept`` pixels (a subset of ``valid``), in raster order: the valid
-        pixels are back-projected once per ``key`` (predictor and valid-pixel rule) for every map of the pass
-        (the demo's keep 0.8 and keep 1.0 maps, a keep sweep) and each map takes its rows."""
-        if key not in self._valid_points:
-            self._valid_points[key] = pixels_to_world(depth, valid, K, T_world_cam2)
-        return self._valid_points[key][kept[valid]]
 
 
 @dataclass
@@ -274,8 +264,7 @@ class MapBuilder:
             raise MonoMapError(f"frame {i}: empty frame, no valid predicted depth within "
                                f"[{self.depth_range[0]:g}, {self.depth_range[1]:g}] m")
         shown = not self.dist_mode or self.observers   # distribution mode integrates rays, not these points
-        key = (id(self.predictor), self.stride, self.depth_range, self.dist_mode)   # what decides `valid`
-        pts = inputs.kept_points(key, depth, valid, mask, self.K, T_world_cam2) if shown else np.zeros((0, 3))
+        pts = pixels_to_world(depth, mask, self.K, T_world_cam2) if shown else np.zeros((0, 3))
         n_valid = int(valid.sum())
         return Measurement(pts, camera_origin(T_world_cam2), n_valid, float(mask.sum()) / n_valid,
                            float(entropy[mask].mean()), image, depth, entropy, mask, pred, valid)
