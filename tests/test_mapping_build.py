@@ -65,6 +65,32 @@ def test_compiled_backprojection_gives_the_numpy_bits(monkeypatch):
     assert np.array_equal(pixels_to_world(depth, mask, Ks, T), ref)
 
 
+def test_compiled_lidar_to_world_gives_the_numpy_points(monkeypatch):
+    """The compiled lidar_to_world: the same points in the same order and bits as the numpy form, with
+    non-finite points, points behind image_2 and outside its view in the scan; with and without fov_only."""
+    if points.library() is None:
+        assert shutil.which(os.environ.get("CC", "cc")) is None, "a C compiler is here but the kernel did not build"
+        pytest.skip("no C compiler on this machine: only the numpy form exists")
+    rng = np.random.default_rng(5)
+    scan = np.concatenate([rng.uniform(-60, 60, (4000, 4)), rng.uniform(2, 40, (2000, 4)) * [1, 0.2, 0.05, 1]])
+    scan = scan.astype(np.float32)
+    scan[::97, 1] = np.nan
+    scan[::131, 2] = np.inf
+    T_cam2_velo = geometry.make_pose(np.array([[0, -1, 0], [0, 0, -1], [1, 0, 0]], float), [0.06, -0.08, -0.27])
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    T_world_cam2 = geometry.make_pose(q, rng.normal(size=3) * 200)
+    for fov in (True, False):
+        got, origin = lidar_to_world(scan, T_world_cam2, T_cam2_velo, fov_only=fov, K=K, image_size=(360, 1200))
+        ref, ref_origin = points.lidar_to_world_numpy(scan, T_world_cam2, T_cam2_velo, fov, K, (360, 1200))
+        assert np.array_equal(got, ref) and np.array_equal(origin, ref_origin)
+        assert 0 < len(got) < len(scan) and np.isfinite(got).all()
+    in_view = lidar_to_world(scan, T_world_cam2, T_cam2_velo, fov_only=True, K=K, image_size=(360, 1200))[0]
+    assert 500 < len(in_view) < 3000            # the forward band is mostly in view, the cube mostly not
+    monkeypatch.setenv("MONO_MAP_NO_C", "1")
+    assert np.array_equal(lidar_to_world(scan, T_world_cam2, T_cam2_velo, fov_only=True, K=K,
+                                         image_size=(360, 1200))[0], in_view)
+
+
 def test_hand_built_pose_places_point():
     # camera 2 m above the world origin looking along world +x: cam z -> world x, cam x -> world -y,
     # cam y (down) -> world -z

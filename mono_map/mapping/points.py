@@ -17,7 +17,9 @@ from mono_map import ckernel, geometry
 # operations in the same order (built without fused multiply-adds: numpy's bits), ~8x faster than the
 # temporaries of the numpy form on 466 k pixels (docs/results.md).
 C_SOURCE = r"""
+#include <math.h>
 #include <stdint.h>
+
 int64_t mm_pixels_to_world(const float *depth, const uint8_t *mask, int64_t h, int64_t w, const double *k,
                            const double *t, double *out) {
     const double fx = k[0], skew = k[1], cx = k[2], fy = k[4], cy = k[5];
@@ -40,8 +42,41 @@ int64_t mm_pixels_to_world(const float *depth, const uint8_t *mask, int64_t h, i
     }
     return n;
 }
+
+/* lidar_to_world: finite points of an (n, cols) float32 scan, optionally only those in image_2's view (camera
+   frame by tcv = T_cam2_velo's 3x4, pixel = K p / z rounded half to even, as in_camera_fov), moved to the
+   world by twv = T_world_velo's 3x4 with rigid_columns' operation order. */
+int64_t mm_lidar_to_world(const float *scan, int64_t n, int64_t cols, int fov, const double *tcv,
+                          const double *k, int64_t h, int64_t w, double min_depth, const double *twv,
+                          double *out) {
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; i++) {
+        const double x = (double)scan[i * cols], y = (double)scan[i * cols + 1], z = (double)scan[i * cols + 2];
+        if (!isfinite(x) || !isfinite(y) || !isfinite(z)) continue;
+        if (fov) {
+            double c[3];
+            for (int r = 0; r < 3; r++) c[r] = x * tcv[4 * r] + y * tcv[4 * r + 1] + z * tcv[4 * r + 2] + tcv[4 * r + 3];
+            if (!(c[2] > min_depth)) continue;
+            const double pu = k[0] * c[0] + k[1] * c[1] + k[2] * c[2];
+            const double pv = k[3] * c[0] + k[4] * c[1] + k[5] * c[2];
+            const double pw = k[6] * c[0] + k[7] * c[1] + k[8] * c[2];
+            const double u = nearbyint(pu / pw), v = nearbyint(pv / pw);
+            if (!(u >= 0 && u < (double)w && v >= 0 && v < (double)h)) continue;
+        }
+        for (int r = 0; r < 3; r++) {
+            double acc = x * twv[4 * r];
+            acc += y * twv[4 * r + 1];
+            acc += z * twv[4 * r + 2];
+            acc += twv[4 * r + 3];
+            out[3 * m + r] = acc;
+        }
+        m++;
+    }
+    return m;
+}
 """
 _P, _I64 = ctypes.c_void_p, ctypes.c_int64
+FOV_MIN_DEPTH = 1e-3        # metres in front of image_2 for a LiDAR point to count as in view
 _LIB: list = []
 
 
@@ -50,8 +85,9 @@ def library():
     if ckernel.disabled():
         return None
     if not _LIB:
-        _LIB.append(ckernel.load("mm_points", C_SOURCE,
-                                 {"mm_pixels_to_world": ([_P, _P, _I64, _I64, _P, _P, _P], _I64)}))
+        _LIB.append(ckernel.load("mm_points", C_SOURCE, {
+            "mm_pixels_to_world": ([_P, _P, _I64, _I64, _P, _P, _P], _I64),
+            "mm_lidar_to_world": ([_P, _I64, _I64, ctypes.c_int, _P, _P, _I64, _I64, ctypes.c_double, _P, _P], _I64)}))
     return _LIB[0]
 
 
@@ -109,7 +145,7 @@ def camera_origin(T_world_cam2: np.ndarray) -> np.ndarray:
 
 
 def in_camera_fov(points_velo: np.ndarray, T_cam2_velo: np.ndarray, K: np.ndarray, height: int, width: int,
-                  min_depth: float = 1e-3) -> np.ndarray:
+                  min_depth: float = FOV_MIN_DEPTH) -> np.ndarray:
     """Bool (N,): velodyne points that project inside image_2 (nearest pixel in range) with positive depth."""
     pts_cam = geometry.transform_points(T_cam2_velo, np.asarray(points_velo)[:, :3])
     uv, z = geometry.project_points(K, pts_cam)
@@ -127,13 +163,36 @@ def lidar_to_world(scan: np.ndarray, T_world_cam2: np.ndarray, T_cam2_velo: np.n
     """World points (N, 3) of a velodyne scan ((M, ≥3), velodyne frame) and the velodyne centre (3,).
 
     fov_only: keep only points inside image_2's field of view (needs K and image_size (H, W)).
-    Non-finite points are dropped.
+    Non-finite points are dropped. A float32 scan goes through the compiled kernel: the same points in the
+    same order and bits as :func:`lidar_to_world_numpy` (the view test's arithmetic is written out where
+    numpy multiplies matrices, so a point exactly on a pixel's rounding boundary could in principle fall the
+    other way; tested equal on scans of 00).
     """
+    if fov_only and (K is None or image_size is None):
+        raise ValueError("fov_only needs K and image_size")
+    scan = np.asarray(scan)
+    lib = library() if scan.dtype == np.float32 and scan.ndim == 2 and scan.shape[1] >= 3 else None
+    if lib is None:
+        return lidar_to_world_numpy(scan, T_world_cam2, T_cam2_velo, fov_only, K, image_size)
+    T_world_velo = np.asarray(T_world_cam2, dtype=np.float64) @ np.asarray(T_cam2_velo, dtype=np.float64)
+    scan = np.ascontiguousarray(scan)
+    out = np.empty((len(scan), 3), dtype=np.float64)
+    tcv = np.ascontiguousarray(np.asarray(T_cam2_velo, dtype=np.float64)[:3, :4])
+    k = np.ascontiguousarray(np.eye(3) if K is None else K, dtype=np.float64)
+    h, w = image_size if fov_only else (0, 0)
+    twv = np.ascontiguousarray(T_world_velo[:3, :4])
+    m = lib.mm_lidar_to_world(scan.ctypes.data, len(scan), scan.shape[1], int(fov_only), tcv.ctypes.data,
+                              k.ctypes.data, h, w, FOV_MIN_DEPTH, twv.ctypes.data, out.ctypes.data)
+    return out[:m], T_world_velo[:3, 3].copy()
+
+
+def lidar_to_world_numpy(scan: np.ndarray, T_world_cam2: np.ndarray, T_cam2_velo: np.ndarray,
+                         fov_only: bool = False, K: np.ndarray | None = None,
+                         image_size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`lidar_to_world` in numpy (the reference of the compiled path; any dtype)."""
+    T_world_velo = np.asarray(T_world_cam2, dtype=np.float64) @ np.asarray(T_cam2_velo, dtype=np.float64)
     pts = np.asarray(scan, dtype=np.float64)[:, :3]
     pts = pts[np.isfinite(pts).all(axis=1)]
     if fov_only:
-        if K is None or image_size is None:
-            raise ValueError("fov_only needs K and image_size")
         pts = pts[in_camera_fov(pts, T_cam2_velo, K, image_size[0], image_size[1])]
-    T_world_velo = np.asarray(T_world_cam2, dtype=np.float64) @ np.asarray(T_cam2_velo, dtype=np.float64)
     return rigid_columns(T_world_velo, pts[:, 0], pts[:, 1], pts[:, 2]), T_world_velo[:3, 3].copy()
