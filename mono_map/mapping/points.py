@@ -20,6 +20,17 @@ C_SOURCE = r"""
 #include <math.h>
 #include <stdint.h>
 
+/* o = T p for a 3x4 row-major T, in rigid_columns' order: ((T0 x + T1 y) + T2 z) + T3 */
+static inline void rigid(const double *t, double x, double y, double z, double *o) {
+    for (int r = 0; r < 3; r++) {
+        double acc = x * t[4 * r];
+        acc += y * t[4 * r + 1];
+        acc += z * t[4 * r + 2];
+        acc += t[4 * r + 3];
+        o[r] = acc;
+    }
+}
+
 int64_t mm_pixels_to_world(const float *depth, const uint8_t *mask, int64_t h, int64_t w, const double *k,
                            const double *t, double *out) {
     const double fx = k[0], skew = k[1], cx = k[2], fy = k[4], cy = k[5];
@@ -30,13 +41,7 @@ int64_t mm_pixels_to_world(const float *depth, const uint8_t *mask, int64_t h, i
             const double z = (double)depth[v * w + u];
             const double y = ((double)v - cy) / fy * z;
             const double x = (((double)u - cx) * z - skew * y) / fx;
-            for (int r = 0; r < 3; r++) {
-                double acc = x * t[4 * r];
-                acc += y * t[4 * r + 1];
-                acc += z * t[4 * r + 2];
-                acc += t[4 * r + 3];
-                out[3 * n + r] = acc;
-            }
+            rigid(t, x, y, z, out + 3 * n);
             n++;
         }
     }
@@ -55,7 +60,7 @@ int64_t mm_lidar_to_world(const float *scan, int64_t n, int64_t cols, int fov, c
         if (!isfinite(x) || !isfinite(y) || !isfinite(z)) continue;
         if (fov) {
             double c[3];
-            for (int r = 0; r < 3; r++) c[r] = x * tcv[4 * r] + y * tcv[4 * r + 1] + z * tcv[4 * r + 2] + tcv[4 * r + 3];
+            rigid(tcv, x, y, z, c);
             if (!(c[2] > min_depth)) continue;
             const double pu = k[0] * c[0] + k[1] * c[1] + k[2] * c[2];
             const double pv = k[3] * c[0] + k[4] * c[1] + k[5] * c[2];
@@ -63,13 +68,7 @@ int64_t mm_lidar_to_world(const float *scan, int64_t n, int64_t cols, int fov, c
             const double u = nearbyint(pu / pw), v = nearbyint(pv / pw);
             if (!(u >= 0 && u < (double)w && v >= 0 && v < (double)h)) continue;
         }
-        for (int r = 0; r < 3; r++) {
-            double acc = x * twv[4 * r];
-            acc += y * twv[4 * r + 1];
-            acc += z * twv[4 * r + 2];
-            acc += twv[4 * r + 3];
-            out[3 * m + r] = acc;
-        }
+        rigid(twv, x, y, z, out + 3 * m);
         m++;
     }
     return m;
@@ -81,7 +80,7 @@ _LIB: list = []
 
 
 def library():
-    """The compiled back-projection (ctypes library), or None (no compiler, or ``MONO_MAP_NO_C=1``)."""
+    """The compiled back-projection and LiDAR transform (ctypes library), or None (no compiler, or ``MONO_MAP_NO_C=1``)."""
     if ckernel.disabled():
         return None
     if not _LIB:
