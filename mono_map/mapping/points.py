@@ -13,9 +13,9 @@ import numpy as np
 
 from mono_map import ckernel, geometry
 
-# pixels_to_world in one pass over the image: geometry.backproject_columns then rigid_columns, the same float64
-# operations in the same order (built without fused multiply-adds: numpy's bits), ~8x faster than the
-# temporaries of the numpy form on 466 k pixels (docs/results.md).
+# pixels_to_world and lidar_to_world in one pass over the image / scan: the float64 operations of the numpy forms
+# in the same order (built without fused multiply-adds: numpy's bits), 6-12x faster than their temporaries
+# (docs/results.md).
 C_SOURCE = r"""
 #include <math.h>
 #include <stdint.h>
