@@ -44,6 +44,21 @@ def reference_leaves(seq, source: str, frames, cfg, refs: Path | None):
     return tree_leaves(build_map(seq, source, frames=frames, octomap=cfg, show_progress=False).tree)
 
 
+def parse_max_ranges(text: str) -> list[float]:
+    """'none,40,30' -> [-1.0, 40.0, 30.0] (OctoMap's convention: < 0 = unlimited); one line naming the option."""
+    out = []
+    for v in text.split(","):
+        v = v.strip().lower()
+        try:
+            r = -1.0 if v == "none" else float(v)
+        except ValueError:
+            raise SystemExit(f"--max-ranges: {v!r} is neither 'none' nor a number of metres")
+        if v != "none" and not (r > 0 and r < float("inf")):
+            raise SystemExit(f"--max-ranges: {v!r} must be a positive number of metres or 'none'")
+        out.append(r)
+    return out
+
+
 def main(argv=None) -> int:
     d = DistributionConfig()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -62,12 +77,17 @@ def main(argv=None) -> int:
     p.add_argument("--snap-free", default=str(int(d.snap_free)), help="0, 1 or 0,1 (free updates snapped to {miss, 0})")
     p.add_argument("--prob-hit", type=float, default=0.7)
     p.add_argument("--prob-miss", type=float, default=0.4)
+    p.add_argument("--max-ranges", default="none",
+                   help="comma list of OctoMap max ranges for the mono maps, metres or 'none' (unlimited): every "
+                        "candidate is built once per value (the references stay unlimited)")
+    p.add_argument("--keeps-only", action="store_true", help="no distribution candidates")
     p.add_argument("--refs", default=None, help="directory with built lidar-fov / depth-gt maps of these frames")
     p.add_argument("--out", default=None, help="write Markdown, JSON and plots here")
     args = p.parse_args(argv)
     if args.tune and args.seq == "00":
         raise SystemExit("tune on a training town, never on 00")
     cfg = OctoMapConfig(prob_hit=args.prob_hit, prob_miss=args.prob_miss)
+    max_ranges = parse_max_ranges(args.max_ranges)
     selection = parse_frames(args.frames)
     seq = open_sequence(args.data_root, args.seq)
     frames = selection.resolve(len(seq))
@@ -85,14 +105,17 @@ def main(argv=None) -> int:
                                                          args.bin_spread.split(","), args.quantum.split(","),
                                                          args.snap_free.split(","))]
     cands = {}   # name -> build_map keyword arguments; one builder each, all fed from one prediction per frame
-    for k in sorted({float(k) for k in args.keeps.split(",")}, reverse=True):
-        cands["mono (keep 1.0)" if k == 1.0 else f"mono keep {k:g}"] = dict(keep=k)
-    for g in grid:
-        name = "mono, distribution" if len(grid) == 1 else (
-            f"dist eps {g.eps:g} min {g.min_update:g} step {g.ray_step} T {g.temperature:g} spread {g.bin_spread:g}"
-            f" q {g.quantum:g}" + (" snap" if g.snap_free else ""))
-        cands[name] = dict(integrate="distribution", distribution=g)
-    builders = make_builders(seq, [dict(kw, source="mono", octomap=cfg, predictor=predictor, stats_every=10**9)
+    for r in max_ranges:
+        octomap = OctoMapConfig(prob_hit=cfg.prob_hit, prob_miss=cfg.prob_miss, max_range=r)
+        tag = "" if r < 0 else f", max range {r:g} m"
+        for k in sorted({float(k) for k in args.keeps.split(",")}, reverse=True):
+            cands[("mono (keep 1.0)" if k == 1.0 else f"mono keep {k:g}") + tag] = dict(keep=k, octomap=octomap)
+        for g in [] if args.keeps_only else grid:
+            name = "mono, distribution" if len(grid) == 1 else (
+                f"dist eps {g.eps:g} min {g.min_update:g} step {g.ray_step} T {g.temperature:g} "
+                f"spread {g.bin_spread:g} q {g.quantum:g}" + (" snap" if g.snap_free else ""))
+            cands[name + tag] = dict(integrate="distribution", distribution=g, octomap=octomap)
+    builders = make_builders(seq, [dict(kw, source="mono", predictor=predictor, stats_every=10**9)
                                    for kw in cands.values()], len(frames))
     run_builders(seq, builders, frames)
     rows, reliability = [], {}
@@ -108,6 +131,7 @@ def main(argv=None) -> int:
         dist = kw.get("distribution")
         rows.append({"method": name, "source": "mono" if dist is None else "mono-distribution",
                      "keep": kw.get("keep"), "settings": None if dist is None else dist.__dict__,
+                     "max_range": kw["octomap"].max_range,
                      "accuracy": m["accuracy"], "coverage": m["coverage"], "accuracy_covered": m["accuracy_covered"],
                      "precision": m["precision"], "recall": m["recall"], "f1": m["f1"],
                      "surface_precision": s["surface_precision"], "occupied_cells": s["occupied_cells"],

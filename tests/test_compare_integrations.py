@@ -1,0 +1,53 @@
+"""tools/compare_integrations.py: a max-range sweep of the keep maps in one pass, and its bad input."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+TOOL = REPO / "tools" / "compare_integrations.py"
+
+
+def test_bad_max_ranges_one_line_before_any_work(tmp_path):
+    for bad, why in (("30,abc", "neither 'none' nor a number"), ("0", "positive number"), ("inf", "positive number")):
+        p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--data-root", str(tmp_path / "none"),
+                            "--max-ranges", bad], capture_output=True, text=True, cwd=REPO)
+        assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
+        lines = p.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("--max-ranges:") and why in lines[0], p.stderr
+
+
+def test_max_range_sweep_builds_each_keep_map_per_range(tiny_root, tmp_path):
+    """Every keep map once per max range from one prediction pass; the range-limited map has fewer occupied
+    cells (end points beyond the range are not inserted) and at most as many as the unlimited one; the
+    unlimited rows equal a plain build of the same map."""
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--frames", "0:3", "--data-root", str(tiny_root),
+                        "--model", "oracle", "--keeps", "0.8,1.0", "--max-ranges", "none,8", "--keeps-only",
+                        "--out", str(out)], capture_output=True, text=True, cwd=REPO)
+    assert p.returncode == 0, p.stderr
+    rows = {r["method"]: r for r in json.loads(next(out.glob("compare_tiny_*.json")).read_text())["rows"]}
+    assert sorted(rows) == ["mono (keep 1.0)", "mono (keep 1.0), max range 8 m", "mono keep 0.8",
+                            "mono keep 0.8, max range 8 m"]
+    for k in ("mono (keep 1.0)", "mono keep 0.8"):
+        assert rows[k]["max_range"] < 0 and rows[k + ", max range 8 m"]["max_range"] == 8.0
+        assert 0 < rows[k + ", max range 8 m"]["occupied_cells"] < rows[k]["occupied_cells"]
+    assert rows["mono keep 0.8"]["occupied_cells"] <= rows["mono (keep 1.0)"]["occupied_cells"]
+
+    from mono_map.config import OctoMapConfig
+    from mono_map.data.kitti import open_sequence
+    from mono_map.eval.map_metrics import surface_precision
+    from mono_map.mapping.build import build_map
+    from mono_map.mapping.oracle import NoisyGroundTruthPredictor
+    from mono_map.mapping.octree import tree_leaves
+
+    seq = open_sequence(tiny_root, "tiny")
+    plain = build_map(seq, "mono", 0.8, frames=[0, 1, 2], predictor=NoisyGroundTruthPredictor(),
+                      octomap=OctoMapConfig(max_range=8.0), show_progress=False)
+    surf = build_map(seq, "depth-gt", frames=[0, 1, 2], show_progress=False)
+    s = surface_precision(tree_leaves(plain.tree), tree_leaves(surf.tree))
+    assert s["occupied_cells"] == rows["mono keep 0.8, max range 8 m"]["occupied_cells"]
+    assert np.isclose(s["surface_precision"], rows["mono keep 0.8, max range 8 m"]["surface_precision"])
