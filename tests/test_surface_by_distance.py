@@ -1,0 +1,36 @@
+"""tools/surface_by_distance.py: distances to the path, the per-bin table, bad input in one line."""
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+TOOL = REPO / "tools" / "surface_by_distance.py"
+
+
+def _tool():
+    spec = importlib.util.spec_from_file_location("surface_by_distance", TOOL)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_distance_to_the_path_and_the_table():
+    t = _tool()
+    path = np.array([[0.0, 0.0], [0.0, 10.0]])
+    xz = np.array([[3.0, 4.0], [0.0, 25.0], [-5.0, 10.0]])
+    np.testing.assert_allclose(t.path_distance(xz, path, chunk=2), [5.0, 15.0, 5.0])
+    near = {"m": np.array([True, False, False])}
+    md = t.table("distance (m)", (0, 10, 20), {"m": np.array([5.0, 15.0, 5.0])}, near)
+    assert "| 0–10 | 2 / 50.0 |" in md and "| 10–20 | 1 / 0.0 |" in md and "| all | 3 / 33.3 |" in md
+
+
+def test_bad_input_one_line(tmp_path):
+    for args, msg in ((["--surface", str(tmp_path / "gt.bt"), "nameless.bt"], "expected NAME=MAP.bt"),
+                      (["--surface", str(tmp_path / "gt.bt"), f"a={tmp_path / 'a.bt'}"], "no such map")):
+        p = subprocess.run([sys.executable, str(TOOL), *args], capture_output=True, text=True, cwd=REPO)
+        lines = p.stderr.strip().splitlines()
+        assert p.returncode != 0 and len(lines) == 1 and msg in lines[0], p.stderr
