@@ -1,22 +1,19 @@
 """tools/bench_scaling.py: the growth exponents and ratios it reports, its report files, its bad input."""
 
-import importlib.util
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+from tool_loader import load_tool
 
 REPO = Path(__file__).resolve().parents[1]
 TOOL = REPO / "tools" / "bench_scaling.py"
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("bench_scaling", TOOL)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("bench_scaling")
 
 
 def _run(source, n, build_s, rss, map_mb, frame_s):

@@ -1,21 +1,18 @@
 """tools/surface_by_distance.py: distances to the path, the per-bin table, bad input in one line."""
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+from tool_loader import load_tool
 
 REPO = Path(__file__).resolve().parents[1]
 TOOL = REPO / "tools" / "surface_by_distance.py"
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("surface_by_distance", TOOL)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("surface_by_distance")
 
 
 def test_distance_to_the_path_and_the_table():
