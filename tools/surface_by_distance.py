@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     seq = open_sequence(args.data_root, args.seq)
     frames = parse_frames(args.frames).resolve(len(seq))
     path_xz = np.stack([seq.T_world_cam0(i)[[0, 2], 3] for i in frames])
-    surface = tree_leaves(load_tree(args.surface))
+    surface = occupied_keys(tree_leaves(load_tree(args.surface)))
     named["depth-gt"] = Path(args.surface)
     dist, height, near = {}, {}, {}
     for name, path in named.items():

@@ -102,16 +102,16 @@ def surface_precision(map_leaves: Leaves, surface_leaves: Leaves) -> dict:
     if not np.isclose(map_leaves.resolution, surface_leaves.resolution):
         raise MonoMapError(f"map resolution {map_leaves.resolution} m differs from the surface map's "
                            f"{surface_leaves.resolution} m")
-    mk = occupied_keys(map_leaves)
-    near = near_surface(mk, surface_leaves)
+    mk, surface = occupied_keys(map_leaves), occupied_keys(surface_leaves)
+    near = near_surface(mk, surface)
     return {"surface_precision": float(near.mean()) if len(mk) else 0.0, "occupied_cells": int(len(mk)),
-            "surface_cells": int(len(occupied_keys(surface_leaves))), "on_surface_cells": int(near.sum())}
+            "surface_cells": int(len(surface)), "on_surface_cells": int(near.sum())}
 
 
-def near_surface(keys: np.ndarray, surface_leaves: Leaves) -> np.ndarray:
+def near_surface(keys: np.ndarray, surface_keys: np.ndarray) -> np.ndarray:
     """(N,) bool: whether each cell of ``keys`` (N, 3 OctoMap keys) lies within one cell (26-neighbourhood) of
-    an occupied finest cell of ``surface_leaves``."""
-    truth = np.sort(_pack(occupied_keys(surface_leaves) + 1))       # +1: neighbours of key 0 stay >= 0
+    a cell of ``surface_keys`` (M, 3; e.g. a depth-gt map's ``occupied_keys``)."""
+    truth = np.sort(_pack(surface_keys + 1))                        # +1: neighbours of key 0 stay >= 0
     near = np.zeros(len(keys), dtype=bool)
     if len(truth):
         for off in np.stack(np.meshgrid([0, 1, 2], [0, 1, 2], [0, 1, 2], indexing="ij"), -1).reshape(-1, 3):
