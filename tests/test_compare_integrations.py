@@ -22,8 +22,8 @@ def test_bad_max_ranges_one_line_before_any_work(tmp_path):
 
 def test_max_range_sweep_builds_each_keep_map_per_range(tiny_root, tmp_path):
     """Every keep map once per max range from one prediction pass; the range-limited map has fewer occupied
-    cells (end points beyond the range are not inserted) and at most as many as the unlimited one; the
-    unlimited rows equal a plain build of the same map."""
+    cells (end points beyond the range are not inserted); keep 0.8 at most as many as keep 1.0; a range-limited
+    row equals a plain build of the same map with that max_range."""
     out = tmp_path / "out"
     p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--frames", "0:3", "--data-root", str(tiny_root),
                         "--model", "oracle", "--keeps", "0.8,1.0", "--max-ranges", "none,8", "--keeps-only",

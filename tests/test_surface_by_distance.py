@@ -31,3 +31,17 @@ def test_bad_input_one_line(tmp_path):
         p = subprocess.run([sys.executable, str(TOOL), *args], capture_output=True, text=True, cwd=REPO)
         lines = p.stderr.strip().splitlines()
         assert p.returncode != 0 and len(lines) == 1 and msg in lines[0], p.stderr
+
+
+def test_maps_of_another_resolution_than_the_surface_one_line(tiny_root, tmp_path):
+    import octomap
+
+    for res, name in ((0.2, "gt.bt"), (0.4, "a.bt")):
+        tree = octomap.OcTree(res)
+        tree.updateNode(np.array([1.0, 0.0, 5.0]), True)
+        tree.writeBinary(str(tmp_path / name).encode())
+    p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--frames", "0:3", "--data-root", str(tiny_root),
+                        "--surface", str(tmp_path / "gt.bt"), f"a={tmp_path / 'a.bt'}"],
+                       capture_output=True, text=True, cwd=REPO)
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode != 0 and len(lines) == 1 and "a.bt: 0.4 m cells" in lines[0], p.stderr

@@ -21,6 +21,7 @@ the accuracy-vs-memory plot and the reliability diagram (:mod:`mono_map.mapping.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import sys
 from pathlib import Path
@@ -106,7 +107,7 @@ def main(argv=None) -> int:
                                                          args.snap_free.split(","))]
     cands = {}   # name -> build_map keyword arguments; one builder each, all fed from one prediction per frame
     for r in max_ranges:
-        octomap = OctoMapConfig(prob_hit=cfg.prob_hit, prob_miss=cfg.prob_miss, max_range=r)
+        octomap = dataclasses.replace(cfg, max_range=r)
         tag = "" if r < 0 else f", max range {r:g} m"
         for k in sorted({float(k) for k in args.keeps.split(",")}, reverse=True):
             cands[("mono (keep 1.0)" if k == 1.0 else f"mono keep {k:g}") + tag] = dict(keep=k, octomap=octomap)

@@ -8,7 +8,8 @@
 Each occupied finest cell counts as on a surface as in ``eval``'s surface precision (within one cell of an
 occupied cell of the ``--surface`` map, the depth-gt map of the same frames). Distance: horizontal (x, z of the
 cam0 world frame) to the nearest cam0 position of the frames; height: above the road, taken as
-``--camera-height`` metres below the cam0 path (KITTI's cam0 is 1.65 m above the ground; y points down).
+``--camera-height`` metres below the world origin (cam0 of the sequence's first pose; KITTI's cam0 is 1.65 m
+above the ground; y points down) — flat ground is assumed.
 Prints two Markdown tables (cells / % on a surface per bin and map, the surface map's own cells beside).
 """
 
@@ -75,11 +76,15 @@ def main(argv=None) -> int:
     seq = open_sequence(args.data_root, args.seq)
     frames = parse_frames(args.frames).resolve(len(seq))
     path_xz = np.stack([seq.T_world_cam0(i)[[0, 2], 3] for i in frames])
-    surface = occupied_keys(tree_leaves(load_tree(args.surface)))
+    surface_leaves = tree_leaves(load_tree(args.surface))
+    surface = occupied_keys(surface_leaves)
     named["depth-gt"] = Path(args.surface)
     dist, height, near = {}, {}, {}
     for name, path in named.items():
-        leaves = tree_leaves(load_tree(path))
+        leaves = surface_leaves if name == "depth-gt" else tree_leaves(load_tree(path))
+        if not np.isclose(leaves.resolution, surface_leaves.resolution):
+            raise SystemExit(f"surface_by_distance: {path}: {leaves.resolution} m cells, the surface map's are "
+                             f"{surface_leaves.resolution} m")
         keys = occupied_keys(leaves)
         xyz = key_to_coord(keys, leaves.resolution)
         near[name] = near_surface(keys, surface)
