@@ -20,6 +20,14 @@ def test_bad_max_ranges_one_line_before_any_work(tmp_path):
         assert len(lines) == 1 and lines[0].startswith("--max-ranges:") and why in lines[0], p.stderr
 
 
+def test_bad_ranks_one_line_before_any_work(tmp_path):
+    p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--data-root", str(tmp_path / "none"),
+                        "--ranks", "entropy,mode"], capture_output=True, text=True, cwd=REPO)
+    assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("--rank: unknown ranking 'mode'"), p.stderr
+
+
 def test_max_range_sweep_builds_each_keep_map_per_range(tiny_root, tmp_path):
     """Every keep map once per max range from one prediction pass; the range-limited map has fewer occupied
     cells (end points beyond the range are not inserted); keep 0.8 at most as many as keep 1.0; a range-limited

@@ -36,6 +36,8 @@ from mono_map.mapping.build import build_map, load_predictor, make_builders, run
 from mono_map.mapping.jobs import MapJob  # noqa: E402
 from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.octree import load_tree, tree_leaves  # noqa: E402
+from mono_map.mapping.select import check_rank  # noqa: E402
+from mono_map.errors import MonoMapError  # noqa: E402
 
 
 def reference_leaves(seq, source: str, frames, cfg, refs: Path | None):
@@ -82,6 +84,8 @@ def main(argv=None) -> int:
                    help="comma list of OctoMap max ranges for the mono maps, metres or 'none' (unlimited): every "
                         "candidate is built once per value (the references stay unlimited)")
     p.add_argument("--keeps-only", action="store_true", help="no distribution candidates")
+    p.add_argument("--ranks", default="entropy",
+                   help="how keep maps rank pixels: entropy, metric or entropy,metric (mono_map.mapping.select)")
     p.add_argument("--refs", default=None, help="directory with built lidar-fov / depth-gt maps of these frames")
     p.add_argument("--out", default=None, help="write Markdown, JSON and plots here")
     args = p.parse_args(argv)
@@ -89,6 +93,10 @@ def main(argv=None) -> int:
         raise SystemExit("tune on a training town, never on 00")
     cfg = OctoMapConfig(prob_hit=args.prob_hit, prob_miss=args.prob_miss)
     max_ranges = parse_max_ranges(args.max_ranges)
+    try:
+        ranks = [check_rank(r.strip()) for r in args.ranks.split(",")]
+    except MonoMapError as exc:
+        raise SystemExit(str(exc)) from None
     selection = parse_frames(args.frames)
     seq = open_sequence(args.data_root, args.seq)
     frames = selection.resolve(len(seq))
@@ -110,7 +118,10 @@ def main(argv=None) -> int:
         octomap = dataclasses.replace(cfg, max_range=r)
         tag = "" if r < 0 else f", max range {r:g} m"
         for k in sorted({float(k) for k in args.keeps.split(",")}, reverse=True):
-            cands[("mono (keep 1.0)" if k == 1.0 else f"mono keep {k:g}") + tag] = dict(keep=k, octomap=octomap)
+            for rank in ranks if k < 1.0 else ranks[:1]:         # keep 1.0 keeps every pixel whatever the ranking
+                rtag = "" if rank == "entropy" else f", ranked by {rank}"
+                cands[("mono (keep 1.0)" if k == 1.0 else f"mono keep {k:g}") + rtag + tag] = dict(
+                    keep=k, octomap=octomap, rank=rank)
         for g in [] if args.keeps_only else grid:
             name = "mono, distribution" if len(grid) == 1 else (
                 f"dist eps {g.eps:g} min {g.min_update:g} step {g.ray_step} T {g.temperature:g} "
@@ -131,7 +142,7 @@ def main(argv=None) -> int:
         reliability[name] = e
         dist = kw.get("distribution")
         rows.append({"method": name, "source": "mono" if dist is None else "mono-distribution",
-                     "keep": kw.get("keep"), "settings": None if dist is None else dist.__dict__,
+                     "keep": kw.get("keep"), "rank": kw.get("rank"), "settings": None if dist is None else dist.__dict__,
                      "max_range": kw["octomap"].max_range,
                      "accuracy": m["accuracy"], "coverage": m["coverage"], "accuracy_covered": m["accuracy_covered"],
                      "precision": m["precision"], "recall": m["recall"], "f1": m["f1"],

@@ -32,7 +32,7 @@ from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.octree import key_to_coord
 from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
 from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
-from mono_map.mapping.select import DEFAULT_KEEP, check_keep, select_pixels, valid_pixels
+from mono_map.mapping.select import DEFAULT_KEEP, check_keep, check_rank, confidence_score, select_pixels, valid_pixels
 
 SOURCES = ("mono", "depth-gt") + LIDAR_SOURCES
 
@@ -207,8 +207,9 @@ class MapBuilder:
 
     def __init__(self, seq, source: str, keep: float, *, octomap: OctoMapConfig, stride: int, predictor,
                  depth_range: tuple[float, float], observers: Sequence[Callable], stats_every: int,
-                 method: str, integrate: str, distribution: DistributionConfig, n_frames: int):
-        self.seq, self.source, self.keep, self.stride = seq, source, keep, stride
+                 method: str, integrate: str, distribution: DistributionConfig, n_frames: int,
+                 rank: str = "entropy"):
+        self.seq, self.source, self.keep, self.stride, self.rank = seq, source, keep, stride, rank
         self.predictor, self.depth_range, self.observers = predictor, depth_range, list(observers)
         self.stats_every, self.n_frames, self.dcfg = stats_every, n_frames, distribution
         self.integrate = integrate
@@ -257,7 +258,8 @@ class MapBuilder:
                                f"(model failure)")
         # distribution: every valid pixel, its p_beyond is mass beyond each cell (distribution_frame);
         # keep: pixels more likely beyond range than not (sky) are never end points
-        mask, valid = select_pixels(depth, entropy, 1.0 if self.dist_mode else self.keep, *self.depth_range,
+        score = entropy if self.dist_mode else confidence_score(depth, entropy, self.rank)
+        mask, valid = select_pixels(depth, score, 1.0 if self.dist_mode else self.keep, *self.depth_range,
                                     stride=self.stride, return_valid=True,
                                     p_beyond=None if self.dist_mode else getattr(pred, "p_beyond", None))
         if not mask.any():
@@ -350,7 +352,7 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
                  octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None, model: str | None = None,
                  depth_range: tuple[float, float] | None = None, observers: Sequence[Callable] = (),
                  stats_every: int = 100, method: str = "batched", integrate: str = "keep",
-                 distribution: DistributionConfig | None = None) -> MapBuilder:
+                 distribution: DistributionConfig | None = None, rank: str = "entropy") -> MapBuilder:
     """A checked :class:`MapBuilder` for ``n_frames`` frames (arguments as :func:`build_map`'s).
     Raises MonoMapError on bad input."""
     if source not in SOURCES:
@@ -367,6 +369,7 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
         raise MonoMapError("--integrate distribution: needs the batched integration method")
     if source == "mono" and not dist_mode:
         keep = check_keep(keep)
+    rank = check_rank(rank)
     if source == "mono" and predictor is None:
         predictor = load_predictor(model)
     if depth_range is None:
@@ -374,7 +377,7 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
         depth_range = (float(bins.min_depth), float(bins.max_depth))
     return MapBuilder(seq, source, keep, octomap=cfg, stride=stride, predictor=predictor,
                       depth_range=depth_range, observers=observers, stats_every=stats_every, method=method,
-                      integrate=integrate, distribution=dcfg, n_frames=n_frames)
+                      integrate=integrate, distribution=dcfg, n_frames=n_frames, rank=rank)
 
 
 def probs_steps(builders: Sequence[MapBuilder]) -> dict[int, int]:

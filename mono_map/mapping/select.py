@@ -30,6 +30,28 @@ def valid_pixels(depth: np.ndarray, min_depth: float, max_depth: float, stride: 
     return ok
 
 
+RANKS = ("entropy", "metric")   # what "most confident" means when a keep map ranks its pixels
+
+
+def check_rank(rank: str) -> str:
+    if rank not in RANKS:
+        raise MonoMapError(f"--rank: unknown ranking {rank!r} (choose from {', '.join(RANKS)})")
+    return rank
+
+
+def confidence_score(depth: np.ndarray, entropy: np.ndarray, rank: str = "entropy") -> np.ndarray:
+    """H×W float32 score, lower = more confident. "entropy": the prediction's entropy (nats), the paper's —
+    over log-spaced bins it measures spread in log-depth, i.e. relative to the depth. "metric": entropy +
+    log(depth), the differential entropy of the metric depth for a distribution over log-depth
+    (h(d) = h(log d) + E[log d], E[log d] taken as log of the expected depth), up to a constant: spread in
+    metres, as map cells are; it ranks near pixels above far ones of the same relative spread."""
+    e = np.asarray(entropy, dtype=np.float32)
+    if check_rank(rank) == "entropy":
+        return e
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return e + np.log(np.asarray(depth, dtype=np.float32))
+
+
 BEYOND_THRESHOLD = 0.5   # a pixel more likely to see no surface within range (sky) than one is never an end point
 
 
