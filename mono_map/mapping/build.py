@@ -441,14 +441,15 @@ def build_map(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, frames: 
               model: str | None = None, depth_range: tuple[float, float] | None = None,
               observers: Sequence[Callable] = (), stats_every: int = 100, method: str = "batched",
               show_progress: bool = True, integrate: str = "keep",
-              distribution: DistributionConfig | None = None) -> BuildResult:
+              distribution: DistributionConfig | None = None, rank: str = "entropy") -> BuildResult:
     """Integrate ``frames`` of ``seq`` into a new OctoMap.
 
     source: "mono" (depth predictor, ``keep`` lowest-entropy fraction of valid pixels), "depth-gt"
     (ground-truth depth_2, every pixel in the bin range), "lidar" or "lidar-fov" (``keep`` and the
     predictor are ignored). integrate (mono only): "keep" (the paper: kept pixels' expected depths
     as end points) or "distribution" (every valid pixel's distribution, ``distribution`` settings;
-    ``keep`` is ignored). predictor: anything with
+    ``keep`` is ignored). rank (keep maps): "entropy" (the paper's) or "metric" (entropy + log depth,
+    :func:`mono_map.mapping.select.confidence_score`). predictor: anything with
     ``predict(image) -> DepthPrediction`` or ``predict_frame(seq, i, image)``; if None,
     ``load_predictor(model)`` (None → the shipped checkpoint). depth_range: valid predicted
     depths (metres), default the predictor's bin range (else DepthBins' 1–80 m).
@@ -459,7 +460,7 @@ def build_map(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, frames: 
     return build_maps(seq, [dict(source=source, keep=keep, octomap=octomap, stride=stride, predictor=predictor,
                                  model=model, depth_range=depth_range, observers=observers,
                                  stats_every=stats_every, method=method, integrate=integrate,
-                                 distribution=distribution)],
+                                 distribution=distribution, rank=rank)],
                       frames=frames, show_progress=show_progress)[0]
 
 
