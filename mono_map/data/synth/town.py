@@ -190,9 +190,11 @@ def _axes(f, r):
 
 
 def _add_curbs(mb, path, index, edges, st) -> int:
-    """Curb stones along both road edges, 2 m pieces, removed where they would cross another pass's road."""
-    n = 0
+    """Curb stones along both road edges, 2 m pieces, removed where they would cross another pass's road.
+    The pieces' end and mid points are looked up in the path index in one batch (the same per-point results
+    as one query per piece, at a fraction of the cost)."""
     step = 2.0
+    pieces = []                      # (s0, a, b, mid, unit direction, length) of pieces of a plausible length
     for side, edge in edges.items():
         for s0 in np.arange(0.0, path.s[-1] - step, step):
             k0, p0, f0, r0 = _frame_at(path, s0)
@@ -205,17 +207,22 @@ def _add_curbs(mb, path, index, edges, st) -> int:
             if length < 0.5 or length > 3.5:
                 continue
             f /= length
-            r = np.cross([0.0, 1.0, 0.0], f)
-            pts = np.stack([a, b, mid])[:, [0, 2]]
-            kk, dd = index.query(pts)
-            own = np.abs(path.s[kk] - (s0 + step / 2)) < 15.0
-            if (dd < np.where(own, min(edges.values()) - 0.1, edges[-1] + 0.3)).any():
-                continue
-            h = st.curb_height
-            center = mid + np.array([0.0, -(h - 0.1) / 2, 0.0])
-            V, F = box(center, _axes(f, r), [length / 2 + 0.01, (h + 0.1) / 2, 0.125])
-            mb.add(V, F, M.CURB)
-            n += 1
+            pieces.append((s0, a, b, mid, f, length))
+    if not pieces:
+        return 0
+    kk, dd = index.query(np.stack([np.stack([a, b, mid])[:, [0, 2]] for _, a, b, mid, _, _ in pieces]).reshape(-1, 2))
+    kk, dd = kk.reshape(-1, 3), dd.reshape(-1, 3)
+    n = 0
+    for (s0, a, b, mid, f, length), k3, d3 in zip(pieces, kk, dd):
+        own = np.abs(path.s[k3] - (s0 + step / 2)) < 15.0
+        if (d3 < np.where(own, min(edges.values()) - 0.1, edges[-1] + 0.3)).any():
+            continue
+        r = np.cross([0.0, 1.0, 0.0], f)
+        h = st.curb_height
+        center = mid + np.array([0.0, -(h - 0.1) / 2, 0.0])
+        V, F = box(center, _axes(f, r), [length / 2 + 0.01, (h + 0.1) / 2, 0.125])
+        mb.add(V, F, M.CURB)
+        n += 1
     return n
 
 

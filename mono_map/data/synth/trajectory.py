@@ -188,6 +188,7 @@ class PathIndex:
         lab_to_sample[labels[ij[:, 1], ij[:, 0]]] = np.arange(len(xz))
         self.nearest = lab_to_sample[labels]                  # (rows, cols) sample index
         self.dist_coarse = dist * res
+        self.xz = np.ascontiguousarray(xz)                    # (N, 2) the samples' x, z
 
     def _cells(self, xz: np.ndarray) -> np.ndarray:
         ij = np.round((xz - self.origin) / self.res).astype(np.int64)
@@ -200,7 +201,7 @@ class PathIndex:
         k = self.nearest[ij[:, 1], ij[:, 0]]
         # refine among neighbours along the path (the raster label is approximate)
         best_k, best_d = k, np.full(len(k), np.inf)
-        P = self.path.points[:, [0, 2]]
+        P = self.xz
         for off in (-2, -1, 0, 1, 2):
             kk = np.clip(k + off, 0, len(P) - 1)
             d = np.linalg.norm(xz - P[kk], axis=1)
