@@ -28,6 +28,15 @@ def test_bad_ranks_one_line_before_any_work(tmp_path):
     assert len(lines) == 1 and lines[0].startswith("--rank: unknown ranking 'mode'"), p.stderr
 
 
+def test_bad_oracle_sigma_one_line_before_any_work(tmp_path):
+    for extra in (["--model", "shipped", "--oracle-sigma", "0.05"], ["--model", "oracle", "--oracle-sigma", "0"]):
+        p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--data-root", str(tmp_path / "none")] + extra,
+                           capture_output=True, text=True, cwd=REPO)
+        assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
+        lines = p.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("--oracle-sigma: needs --model oracle"), p.stderr
+
+
 def test_max_range_sweep_builds_each_keep_map_per_range(tiny_root, tmp_path):
     """Every keep map once per max range from one prediction pass; the range-limited map has fewer occupied
     cells (end points beyond the range are not inserted); keep 0.8 at most as many as keep 1.0; a range-limited
@@ -59,3 +68,18 @@ def test_max_range_sweep_builds_each_keep_map_per_range(tiny_root, tmp_path):
     s = surface_precision(tree_leaves(plain.tree), tree_leaves(surf.tree))
     assert s["occupied_cells"] == rows["mono keep 0.8, max range 8 m"]["occupied_cells"]
     assert np.isclose(s["surface_precision"], rows["mono keep 0.8, max range 8 m"]["surface_precision"])
+
+
+def test_oracle_sigma_is_the_noise_of_the_oracle(tiny_root, tmp_path):
+    """--oracle-sigma sets the oracle's log-depth noise: 30 % noise puts fewer of keep 1.0's occupied cells on a
+    true surface than the default 3 %; its files carry the sigma in their name."""
+    sp = {}
+    for extra, tag in (([], ""), (["--oracle-sigma", "0.3"], "_sigma0.3")):
+        out = tmp_path / f"out{tag}"
+        p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--frames", "0:2", "--data-root", str(tiny_root),
+                            "--model", "oracle", "--keeps", "1.0", "--keeps-only", "--out", str(out)] + extra,
+                           capture_output=True, text=True, cwd=REPO)
+        assert p.returncode == 0, p.stderr
+        f = out / f"compare_tiny_f0-2_oracle{tag}.json"
+        sp[tag] = json.loads(f.read_text())["rows"][0]["surface_precision"]
+    assert sp["_sigma0.3"] < sp[""] - 0.05

@@ -36,6 +36,7 @@ from mono_map.mapping.build import build_map, load_predictor, make_builders, run
 from mono_map.mapping.jobs import MapJob  # noqa: E402
 from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.octree import load_tree, tree_leaves  # noqa: E402
+from mono_map.mapping.oracle import NoisyGroundTruthPredictor  # noqa: E402
 from mono_map.mapping.select import check_rank  # noqa: E402
 from mono_map.errors import MonoMapError  # noqa: E402
 
@@ -68,6 +69,8 @@ def main(argv=None) -> int:
     p.add_argument("--seq", default="05")
     p.add_argument("--frames", default="0:60")
     p.add_argument("--model", default="shipped", help="'shipped', 'oracle' or a checkpoint")
+    p.add_argument("--oracle-sigma", type=float, default=None,
+                   help="with --model oracle: its log-depth noise on smooth surfaces (default 0.03)")
     p.add_argument("--data-root", default=None)
     p.add_argument("--keeps", default="0.8,1.0")
     p.add_argument("--tune", action="store_true", help="a grid: --eps x --min-update x --ray-step x --temperature")
@@ -89,6 +92,8 @@ def main(argv=None) -> int:
     p.add_argument("--refs", default=None, help="directory with built lidar-fov / depth-gt maps of these frames")
     p.add_argument("--out", default=None, help="write Markdown, JSON and plots here")
     args = p.parse_args(argv)
+    if args.oracle_sigma is not None and (args.model != "oracle" or not 0 < args.oracle_sigma < 1):
+        raise SystemExit("--oracle-sigma: needs --model oracle and a noise in (0, 1)")
     if args.tune and args.seq == "00":
         raise SystemExit("tune on a training town, never on 00")
     cfg = OctoMapConfig(prob_hit=args.prob_hit, prob_miss=args.prob_miss)
@@ -106,7 +111,10 @@ def main(argv=None) -> int:
           flush=True)
     ref = reference_leaves(seq, "lidar-fov", frames, OctoMapConfig(), refs)    # references: default sensor model
     surf = reference_leaves(seq, "depth-gt", frames, OctoMapConfig(), refs)
-    predictor = load_predictor(None if args.model == "shipped" else args.model)
+    if args.oracle_sigma is not None:
+        predictor = NoisyGroundTruthPredictor(sigma=args.oracle_sigma)
+    else:
+        predictor = load_predictor(None if args.model == "shipped" else args.model)
     grid = [DistributionConfig(eps=float(e), min_update=float(m), ray_step=int(s), temperature=float(t),
                                bin_spread=float(b), quantum=float(q), snap_free=bool(int(f)))
             for e, m, s, t, b, q, f in itertools.product(args.eps.split(","), args.min_update.split(","),
@@ -165,7 +173,8 @@ def main(argv=None) -> int:
 
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        stem = f"compare_{args.seq}_{frames_tag(frames)}_{Path(args.model).stem}"
+        stem = f"compare_{args.seq}_{frames_tag(frames)}_{Path(args.model).stem}" + (
+            f"_sigma{args.oracle_sigma:g}" if args.oracle_sigma is not None else "")
         write_text_atomic(out / f"{stem}.md", md)
         write_json_atomic(out / f"{stem}.json", {"sequence": args.seq, "frames": [frames[0], frames[-1] + 1],
                                                  "model": args.model, "rows": rows, "reliability": reliability})
