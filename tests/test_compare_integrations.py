@@ -25,7 +25,7 @@ def test_bad_ranks_one_line_before_any_work(tmp_path):
                         "--ranks", "entropy,mode"], capture_output=True, text=True, cwd=REPO)
     assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
     lines = p.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("--rank: unknown ranking 'mode'"), p.stderr
+    assert len(lines) == 1 and lines[0].startswith("--ranks: unknown ranking 'mode'"), p.stderr
 
 
 def test_bad_oracle_sigma_one_line_before_any_work(tmp_path):

@@ -153,7 +153,7 @@ def test_keep_fraction_exact(keep):
 def test_metric_ranking_prefers_near_pixels_of_equal_relative_spread():
     """rank "metric" = entropy + log(depth): of two pixels with the same entropy (same spread in log-depth)
     the nearer one is more confident, and a far pixel needs log(d_far / d_near) nats less entropy to tie; rank
-    "entropy" is the entropy itself; an unknown ranking is one line naming --rank."""
+    "entropy" is the entropy itself; an unknown ranking is one line naming the argument."""
     depth = np.array([[5.0, 40.0, 40.0]], dtype=np.float32)
     entropy = np.array([[1.0, 1.0, 1.0 - np.log(8.0)]], dtype=np.float32)
     assert np.array_equal(confidence_score(depth, entropy, "entropy"), entropy)
@@ -161,7 +161,7 @@ def test_metric_ranking_prefers_near_pixels_of_equal_relative_spread():
     assert m[0, 0] < m[0, 1] and np.isclose(m[0, 0], m[0, 2], atol=1e-6)
     kept = select_pixels(depth, confidence_score(depth, entropy[:, [0, 1, 1]], "metric"), 1 / 3, 1.0, 80.0)
     assert kept.tolist() == [[True, False, False]]
-    with pytest.raises(MonoMapError, match="^--rank: unknown ranking 'mode'"):
+    with pytest.raises(MonoMapError, match="^rank: unknown ranking 'mode'"):
         confidence_score(depth, entropy, "mode")
 
 

@@ -99,7 +99,7 @@ def main(argv=None) -> int:
     cfg = OctoMapConfig(prob_hit=args.prob_hit, prob_miss=args.prob_miss)
     max_ranges = parse_max_ranges(args.max_ranges)
     try:
-        ranks = [check_rank(r.strip()) for r in args.ranks.split(",")]
+        ranks = [check_rank(r.strip(), "--ranks") for r in args.ranks.split(",")]
     except MonoMapError as exc:
         raise SystemExit(str(exc)) from None
     selection = parse_frames(args.frames)

@@ -33,9 +33,10 @@ def valid_pixels(depth: np.ndarray, min_depth: float, max_depth: float, stride: 
 RANKS = ("entropy", "metric")   # what "most confident" means when a keep map ranks its pixels
 
 
-def check_rank(rank: str) -> str:
+def check_rank(rank: str, option: str = "rank") -> str:
+    """``rank`` if it is one of RANKS, else MonoMapError naming ``option`` (the argument or a tool's flag)."""
     if rank not in RANKS:
-        raise MonoMapError(f"--rank: unknown ranking {rank!r} (choose from {', '.join(RANKS)})")
+        raise MonoMapError(f"{option}: unknown ranking {rank!r} (choose from {', '.join(RANKS)})")
     return rank
 
 
