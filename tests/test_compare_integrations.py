@@ -11,30 +11,32 @@ REPO = Path(__file__).resolve().parents[1]
 TOOL = REPO / "tools" / "compare_integrations.py"
 
 
+def bad_input_line(tmp_path, *args) -> str:
+    """The tool on a data root that does not exist: it must stop on ``args`` first, with one line and no
+    traceback (the data root is never reached, so the check runs before any work). Returns that line."""
+    p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--data-root", str(tmp_path / "none"), *args],
+                       capture_output=True, text=True, cwd=REPO)
+    assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1, p.stderr
+    return lines[0]
+
+
 def test_bad_max_ranges_one_line_before_any_work(tmp_path):
     for bad, why in (("30,abc", "neither 'none' nor a number"), ("0", "positive number"), ("inf", "positive number")):
-        p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--data-root", str(tmp_path / "none"),
-                            "--max-ranges", bad], capture_output=True, text=True, cwd=REPO)
-        assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
-        lines = p.stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith("--max-ranges:") and why in lines[0], p.stderr
+        line = bad_input_line(tmp_path, "--max-ranges", bad)
+        assert line.startswith("--max-ranges:") and why in line, line
 
 
 def test_bad_ranks_one_line_before_any_work(tmp_path):
-    p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--data-root", str(tmp_path / "none"),
-                        "--ranks", "entropy,mode"], capture_output=True, text=True, cwd=REPO)
-    assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
-    lines = p.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("--ranks: unknown ranking 'mode'"), p.stderr
+    line = bad_input_line(tmp_path, "--ranks", "entropy,mode")
+    assert line.startswith("--ranks: unknown ranking 'mode'"), line
 
 
 def test_bad_oracle_sigma_one_line_before_any_work(tmp_path):
     for extra in (["--model", "shipped", "--oracle-sigma", "0.05"], ["--model", "oracle", "--oracle-sigma", "0"]):
-        p = subprocess.run([sys.executable, str(TOOL), "--seq", "tiny", "--data-root", str(tmp_path / "none")] + extra,
-                           capture_output=True, text=True, cwd=REPO)
-        assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
-        lines = p.stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith("--oracle-sigma: needs --model oracle"), p.stderr
+        line = bad_input_line(tmp_path, *extra)
+        assert line.startswith("--oracle-sigma: needs --model oracle"), line
 
 
 def test_max_range_sweep_builds_each_keep_map_per_range(tiny_root, tmp_path):
