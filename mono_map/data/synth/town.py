@@ -210,7 +210,8 @@ def _add_curbs(mb, path, index, edges, st) -> int:
             pieces.append((s0, a, b, mid, f, length))
     if not pieces:
         return 0
-    kk, dd = index.query(np.stack([np.stack([a, b, mid])[:, [0, 2]] for _, a, b, mid, _, _ in pieces]).reshape(-1, 2))
+    ends = np.array([(a, b, mid) for _, a, b, mid, _, _ in pieces])          # (pieces, 3 points, x y z)
+    kk, dd = index.query(ends[:, :, [0, 2]].reshape(-1, 2))
     kk, dd = kk.reshape(-1, 3), dd.reshape(-1, 3)
     n = 0
     for (s0, a, b, mid, f, length), k3, d3 in zip(pieces, kk, dd):

@@ -188,7 +188,7 @@ class PathIndex:
         lab_to_sample[labels[ij[:, 1], ij[:, 0]]] = np.arange(len(xz))
         self.nearest = lab_to_sample[labels]                  # (rows, cols) sample index
         self.dist_coarse = dist * res
-        self.xz = np.ascontiguousarray(xz)                    # (N, 2) the samples' x, z
+        self.xz = xz                                          # (N, 2) the samples' x, z (a copy: fancy index)
 
     def _cells(self, xz: np.ndarray) -> np.ndarray:
         ij = np.round((xz - self.origin) / self.res).astype(np.int64)
