@@ -1,7 +1,7 @@
 """Compile a small C source at run time and load it with ctypes (optional speed-ups with a numpy fallback).
 
 The library is built once with the system C compiler (``$CC``, else ``cc``) as IEEE float code
-(``-O2 -ffp-contract=off -fno-fast-math``: no fused multiply-adds, no reassociation, so float32
+(``-O3 -ffp-contract=off -fno-fast-math``: no fused multiply-adds, no reassociation, so float32
 arithmetic in the same order gives numpy's bits) into a cache directory (``$MONO_MAP_CACHE`` or
 ``~/.cache/mono_map``), named by the source's hash, and reused by every later process.
 ``MONO_MAP_NO_C=1``, a missing compiler or a failed build give None: callers keep their numpy path.
@@ -17,7 +17,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-CFLAGS = ("-O2", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math", "-Werror=implicit-function-declaration")
+CFLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math", "-Werror=implicit-function-declaration")
 
 
 def cache_dir() -> Path:
