@@ -29,6 +29,7 @@ from mono_map.mapping.distribution import (INTEGRATIONS, DistributionConfig, che
                                            distribution_update, far_depth, narrow_bins, ray_distributions,
                                            unconditional_mass)
 from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.nested import KeepGroup, nested_frame
 from mono_map.mapping.octree import key_to_coord
 from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
 from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
@@ -167,6 +168,14 @@ class FrameInputs:
         self.seq, self.i, self.probs_steps = seq, i, dict(probs_steps or {})
         self._image: np.ndarray | None = None
         self._predictions: dict[int, object] = {}
+        self._shared: dict[tuple, object] = {}
+
+    def shared(self, key: tuple, make: Callable[[], object]):
+        """``make()`` the first time ``key`` is asked for in this frame, the same object afterwards (work
+        that several maps of the frame share, e.g. a :class:`~mono_map.mapping.nested.NestedFrame`)."""
+        if key not in self._shared:
+            self._shared[key] = make()
+        return self._shared[key]
 
     def image(self) -> np.ndarray:
         """H×W×3 uint8 RGB image_2 of the frame."""
@@ -199,6 +208,7 @@ class Measurement:
     mask: np.ndarray | None = None    # H×W bool, pixels kept
     prediction: object = None         # mono: the DepthPrediction (distribution mode needs its probs)
     valid: np.ndarray | None = None   # mono: H×W bool, valid pixels
+    key_sets: object = None           # keep maps sharing a ray cast: this map's KeySets (points then display only)
 
 
 class MapBuilder:
@@ -215,6 +225,7 @@ class MapBuilder:
         self.integrate = integrate
         self.dist_mode = source == "mono" and integrate == "distribution"
         self.integrator = MapIntegrator(octomap, method=method)
+        self.group: KeepGroup | None = None   # keep maps whose frames share one ray cast (share_ray_casts)
         self.edges = bin_edges(predictor) if self.dist_mode else None
         self.K = np.asarray(seq.calib.K2, dtype=np.float64)
         self.per_frame: list[dict] = []
@@ -239,6 +250,8 @@ class MapBuilder:
             res, n_used = distribution_frame(self.integrator, m.prediction, m.valid, self.K, T_world_cam2,
                                              self.edges, self.dcfg, i)
             m.kept_fraction = n_used / m.n_valid
+        elif m.key_sets is not None:
+            res, n_used = self.integrator.insert_key_sets(m.key_sets), int(np.count_nonzero(m.mask))
         else:
             res, n_used = self.integrator.insert(m.points, m.origin), len(m.points)
         fstats = self.account(i, m, res, n_used, t_frame)
@@ -259,17 +272,30 @@ class MapBuilder:
         # distribution: every valid pixel, its p_beyond is mass beyond each cell (distribution_frame);
         # keep: pixels more likely beyond range than not (sky) are never end points
         score = entropy if self.dist_mode else confidence_score(depth, entropy, self.rank)
-        mask, valid = select_pixels(depth, score, 1.0 if self.dist_mode else self.keep, *self.depth_range,
-                                    stride=self.stride, return_valid=True,
-                                    p_beyond=None if self.dist_mode else getattr(pred, "p_beyond", None))
+        key_sets = None
+        if self.group is not None:                     # one selection and ray cast for the group's keep maps
+            g = self.group
+            nf = inputs.shared(g.key, lambda: nested_frame(depth, score, g.keeps, self.depth_range, self.stride,
+                                                           getattr(pred, "p_beyond", None), self.K, T_world_cam2,
+                                                           self.integrator.cfg.resolution))
+            level = g.level(self.keep)
+            mask, valid, key_sets = nf.masks[level], nf.valid, nf.key_sets[level]
+        else:
+            mask, valid = select_pixels(depth, score, 1.0 if self.dist_mode else self.keep, *self.depth_range,
+                                        stride=self.stride, return_valid=True,
+                                        p_beyond=None if self.dist_mode else getattr(pred, "p_beyond", None))
         if not mask.any():
             raise MonoMapError(f"frame {i}: empty frame, no valid predicted depth within "
                                f"[{self.depth_range[0]:g}, {self.depth_range[1]:g}] m")
-        shown = not self.dist_mode or self.observers   # distribution mode integrates rays, not these points
-        pts = pixels_to_world(depth, mask, self.K, T_world_cam2) if shown else np.zeros((0, 3))
+        if key_sets is not None:                       # the points are only shown
+            pts = nf.points_of(level) if self.observers else np.zeros((0, 3))
+        elif not self.dist_mode or self.observers:     # distribution mode integrates rays, not these points
+            pts = pixels_to_world(depth, mask, self.K, T_world_cam2)
+        else:
+            pts = np.zeros((0, 3))
         n_valid = int(valid.sum())
         return Measurement(pts, camera_origin(T_world_cam2), n_valid, float(mask.sum()) / n_valid,
-                           float(entropy[mask].mean()), image, depth, entropy, mask, pred, valid)
+                           float(entropy[mask].mean()), image, depth, entropy, mask, pred, valid, key_sets)
 
     def depth_gt_measurement(self, i: int, T_world_cam2: np.ndarray, inputs: FrameInputs) -> Measurement:
         """The synthetic ground-truth depth_2, every pixel within the bin range, back-projected."""
@@ -391,6 +417,25 @@ def probs_steps(builders: Sequence[MapBuilder]) -> dict[int, int]:
     return steps
 
 
+def share_ray_casts(builders: Sequence[MapBuilder]) -> None:
+    """Group the keep maps of one pass that see the same pixels (same predictor, ranking, stride, depth
+    range and cell size; batched integration, unlimited range) so that each frame is selected and ray-cast
+    once for all of them (:mod:`mono_map.mapping.nested`); a group needs two keeps or more. Maps outside a
+    group step on their own, as before."""
+    groups: dict[tuple, list[MapBuilder]] = {}
+    for b in builders:
+        b.group = None
+        cfg = b.integrator.cfg
+        if b.source == "mono" and not b.dist_mode and b.integrator.method == "batched" and cfg.max_range < 0:
+            key = ("keep-group", id(b.predictor), b.rank, b.stride, tuple(b.depth_range), float(cfg.resolution))
+            groups.setdefault(key, []).append(b)
+    for key, members in groups.items():
+        keeps = tuple(sorted({b.keep for b in members}))
+        if len(keeps) > 1:
+            for b in members:
+                b.group = KeepGroup(keeps, key)
+
+
 def prepare_inputs(seq, i: int, steps: Mapping[int, int], predictors: Sequence) -> FrameInputs:
     """Frame ``i``'s shared work: image_2 read and every predictor run once (:class:`FrameInputs`)."""
     inputs = FrameInputs(seq, i, steps)
@@ -408,6 +453,7 @@ def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], sho
     closed at the end, also on error. Take each map with ``builder.result(frames)`` afterwards (one octree in
     memory at a time)."""
     steps = probs_steps(builders)
+    share_ray_casts(builders)
     frames = list(frames)
     predictors = list({id(b.predictor): b.predictor for b in builders if b.source == "mono"}.values())
     iterator = frames

@@ -274,11 +274,22 @@ class MapIntegrator:
 
         t0 = time.perf_counter()
         ks = compute_update(pts, origin, self.cfg.resolution, max_range=self.cfg.max_range)
+        return self._integrate(ks, {"raycast_s": time.perf_counter() - t0})
+
+    def insert_key_sets(self, ks: KeySets) -> FrameIntegration:
+        """Integrate one scan already ray-cast: the free and occupied keys of ``compute_update`` (for the same
+        cell size and ``max_range``), e.g. one of :func:`mono_map.mapping.raycast.compute_nested_updates`."""
+        if self.method != "batched":
+            raise MonoMapError("precomputed key sets need the batched integration method")
+        self._check_open()
+        self.frames += 1
+        return self._integrate(ks, {})
+
+    def _integrate(self, ks: KeySets, timings: dict) -> FrameIntegration:
         t1 = time.perf_counter()
         free_sent, freed = self._apply(ks.free, False, bounds=(ks.lo, ks.hi))
         occ_sent, became = self._apply(ks.occupied, True, bounds=(ks.lo, ks.hi))
-        t2 = time.perf_counter()
-        timings = {"raycast_s": t1 - t0, "mirror_s": t2 - t1}
+        timings["mirror_s"] = time.perf_counter() - t1
         if self.sync_every and self.frames % self.sync_every == 0:
             timings["sync_s"] = self.sync()
         return FrameIntegration(ks, free_sent, occ_sent, became, freed, timings)
