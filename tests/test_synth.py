@@ -473,3 +473,42 @@ def test_ckernel_builds_once_into_its_cache(tmp_path, monkeypatch):
     mtime = built[0].stat().st_mtime_ns
     assert ckernel.load("mm_test", src, {"mm_twice": ([ctypes.c_float], ctypes.c_float)}) is not None
     assert built[0].stat().st_mtime_ns == mtime and sorted(tmp_path.glob("mm_test_*")) == built
+
+
+def _dies_at_frame_2(i: int) -> int:
+    import os
+
+    from mono_map.data.synth import generate
+
+    if i == 2:
+        os._exit(3)                      # as the OOM killer would end a render worker, mid-frame
+    return generate._render_and_write_real(i)
+
+
+def test_a_dead_render_worker_stops_the_run_and_a_new_run_renders_the_rest(tiny_root, tmp_path, monkeypatch):
+    """A render worker that dies fails the run in one line (multiprocessing.Pool waited forever), the
+    frames written are kept, and the next run renders the rest: the same bytes as an undisturbed run."""
+    import multiprocessing as mp
+
+    from mono_map.data.synth import generate, writer
+
+    # forked workers inherit the patched frame function (spawned ones would import the real one)
+    fork = mp.get_context("fork")
+    monkeypatch.setattr(generate.mp, "get_context", lambda method=None: fork)
+    monkeypatch.setattr(generate, "_render_and_write_real", generate._render_and_write, raising=False)
+    monkeypatch.setattr(generate, "_render_and_write", _dies_at_frame_2)
+    root = tmp_path / "kitti"
+    with pytest.raises(MonoMapError, match="synth tiny: a render worker died") as e:
+        generate_sequence(load_recipe("tiny"), root, workers=2, quiet=True)
+    assert "\n" not in str(e.value)
+    seq = root / "sequences/tiny"
+    assert not (seq / writer.MARKER).exists() and (seq / writer.PARTIAL_MARKER).exists()
+    written = {p.name for p in (seq / "image_2").iterdir()}
+    assert "000002.png" not in written and not any(p.name.startswith(".") for p in (seq / "image_2").iterdir())
+    monkeypatch.undo()
+    generate_sequence(load_recipe("tiny"), root, workers=2, quiet=True)
+    ref = tiny_root / "sequences/tiny"
+    files = _frame_files(seq)
+    assert [p.name for p in files] == [p.name for p in _frame_files(ref)]
+    for p in files:
+        assert p.read_bytes() == (ref / p.relative_to(seq)).read_bytes(), p

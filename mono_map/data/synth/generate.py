@@ -8,9 +8,11 @@ and two generations of the same recipe are byte-identical.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import multiprocessing as mp
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -30,7 +32,7 @@ FRAME_PERIOD = 0.1          # seconds between consecutive real poses (KITTI reco
 class FrameRenderer:
     """Holds the ray-casting scene of one town; renders (image, depth, scan) of frame i."""
 
-    def __init__(self, recipe: Recipe, town, nthreads: int = 0):
+    def __init__(self, recipe: Recipe, town, nthreads: int = 0, poses: np.ndarray | None = None):
         import open3d as o3d
 
         from mono_map.data.synth.camera import Lighting, PinholeCamera
@@ -49,7 +51,7 @@ class FrameRenderer:
         self.camera = PinholeCamera(self.K2, KITTI_IMAGE_HEIGHT, KITTI_IMAGE_WIDTH)
         self.light = Lighting.from_recipe(recipe.light)
         self.lidar_dirs = ray_directions()
-        self.poses = frame_poses(recipe)
+        self.poses = frame_poses(recipe) if poses is None else poses   # (n, 4, 4) T_world_cam0 per frame
 
     def render(self, i: int):
         """(rgb H×W×3 uint8, depth H×W float32 metres, velodyne (M, 4) float32) of frame i."""
@@ -92,13 +94,28 @@ def environment(values: dict):
                 os.environ[k] = v
 
 
-def _init_worker(recipe, town, seq_dir, nthreads):
-    _WORKER["renderer"] = FrameRenderer(recipe, town, nthreads)
-    _WORKER["seq_dir"] = Path(seq_dir)
+def _init_worker(recipe, town_file, seq_dir, nthreads):
+    """A render process starts while the parent still builds the town: it imports open3d and computes the
+    frame poses now, and reads the town from ``town_file`` (written before any frame is asked for) with its
+    first frame."""
+    import open3d  # noqa: F401  (~1.6 s, overlapping the town build)
+
+    _WORKER.update(recipe=recipe, town_file=town_file, seq_dir=Path(seq_dir), nthreads=nthreads,
+                   poses=frame_poses(recipe))
+
+
+def _renderer() -> "FrameRenderer":
+    if "renderer" not in _WORKER:
+        import pickle
+
+        with open(_WORKER["town_file"], "rb") as f:
+            town = pickle.load(f)
+        _WORKER["renderer"] = FrameRenderer(_WORKER["recipe"], town, _WORKER["nthreads"], poses=_WORKER["poses"])
+    return _WORKER["renderer"]
 
 
 def _render_and_write(i: int) -> int:
-    rgb, depth, pts = _WORKER["renderer"].render(i)
+    rgb, depth, pts = _renderer().render(i)
     writer.write_frame(_WORKER["seq_dir"], i, rgb, depth, pts)
     return i
 
@@ -157,8 +174,6 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
     extended); ``force`` re-renders everything.  Refuses to touch a directory that holds a
     sequence not written by this generator (no marker: e.g. a real KITTI sequence).
     """
-    from mono_map.data.synth.town import build_town
-
     root = Path(root)
     n = recipe.frames if frames is None else int(frames)
     if not 1 <= n <= recipe.frames:
@@ -192,15 +207,15 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
     todo = list(range(n)) if fresh else [i for i in range(n) if not writer.frame_complete(seq_dir, i)]
     t0 = time.perf_counter()
     if todo:
-        town = build_town(recipe)
-        if not quiet:
-            print(f"synth {recipe.name}: town of {town.stats['triangles']:,} triangles "
-                  f"({town.stats['buildings']} buildings, {town.stats['cars']} cars of which "
-                  f"{town.stats['black_cars']} black, {town.stats['trees']} trees) built in "
-                  f"{time.perf_counter() - t0:.1f} s; rendering {len(todo)} frames with {workers} worker(s)",
-                  file=sys.stderr)
+        def town_built(town) -> None:
+            if not quiet:
+                print(f"synth {recipe.name}: town of {town.stats['triangles']:,} triangles "
+                      f"({town.stats['buildings']} buildings, {town.stats['cars']} cars of which "
+                      f"{town.stats['black_cars']} black, {town.stats['trees']} trees) built in "
+                      f"{time.perf_counter() - t0:.1f} s; rendering {len(todo)} frames with {workers} worker(s)",
+                      file=sys.stderr)
         try:
-            _render_frames(recipe, town, seq_dir, todo, workers, quiet)
+            _render_frames(recipe, seq_dir, todo, workers, quiet, town_built)
         finally:  # interrupted or failed: the workers are gone, so are their half-written frame files
             for sub in ("image_2", "depth_2", "velodyne"):
                 clean_stale_temps(seq_dir / sub)
@@ -217,29 +232,76 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
     return seq_dir
 
 
-def _render_frames(recipe, town, seq_dir, todo, workers, quiet) -> None:
+def _render_frames(recipe, seq_dir: Path, todo: list[int], workers: int, quiet: bool, town_built) -> None:
+    """Build the town and render the frames ``todo`` into ``seq_dir``: in this process with one worker, else
+    in ``workers`` spawned processes started before the town is built (their imports and poses overlap it);
+    the town reaches them through a temporary pickle in the system's temporary directory. A worker that dies (killed, out of
+    memory) stops the run with a MonoMapError instead of leaving it waiting; the frames written are kept."""
+    import pickle
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    from mono_map.data.synth import kernels
+    from mono_map.data.synth.town import build_town
     from mono_map.progress import progress
 
     desc = f"synth {recipe.name}"
+
+    def shown(frames):
+        return frames if quiet else progress(frames, total=len(todo), desc=desc, unit="frame")
+
+    town_file = Path(tempfile.gettempdir()) / f"mono-map-town-{recipe.name}-{os.getpid()}.pkl"
     if workers == 1 or len(todo) == 1:
-        _init_worker(recipe, town, seq_dir, 0)
+        town = build_town(recipe)
+        town_built(town)
+        _WORKER.update(recipe=recipe, seq_dir=seq_dir, nthreads=0, poses=frame_poses(recipe))
+        _WORKER["renderer"] = FrameRenderer(recipe, town, 0, poses=_WORKER["poses"])
         try:
-            for _ in progress(todo, total=len(todo), desc=desc, unit="frame") if not quiet else todo:
-                _render_and_write(_)
+            for i in shown(todo):
+                _render_and_write(i)
         finally:
             _WORKER.clear()
         return
-    from mono_map.data.synth import kernels
-
     kernels.library()           # compile the renderer's kernels once, here, before the workers load them
-    ctx = mp.get_context("spawn")
     nproc = min(workers, len(todo))
-    with environment(WORKER_ENV):
-        pool = ctx.Pool(nproc, initializer=_init_worker, initargs=(recipe, town, str(seq_dir), 1))
-    with pool:
-        it = pool.imap_unordered(_render_and_write, todo, chunksize=1)
-        for _ in (progress(it, total=len(todo), desc=desc, unit="frame") if not quiet else it):
+    with environment(WORKER_ENV):    # the pool starts a process per task asked for: start them all here
+        pool = ProcessPoolExecutor(nproc, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                                   initargs=(recipe, str(town_file), str(seq_dir), 1))
+        started = [pool.submit(os.getpid) for _ in range(nproc)]
+    try:
+        town = build_town(recipe)
+        town_built(town)
+        tmp = town_file.with_suffix(".tmp")
+        with open(tmp, "wb") as f:
+            pickle.dump(town, f, protocol=pickle.HIGHEST_PROTOCOL)
+        os.replace(tmp, town_file)
+        del town
+        for f in started:
+            f.result()
+        for _ in shown(_completed(pool, todo, 2 * nproc)):
             pass
+    except BrokenProcessPool:
+        raise MonoMapError(f"{desc}: a render worker died (killed, or out of memory?); the frames written so far "
+                           f"are kept under {seq_dir} and a new run renders the rest") from None
+    finally:                     # frames not started are dropped; the workers finish theirs and exit
+        pool.shutdown(wait=True, cancel_futures=True)
+        town_file.unlink(missing_ok=True)
+        town_file.with_suffix(".tmp").unlink(missing_ok=True)
+
+
+def _completed(pool, todo: list[int], in_flight: int):
+    """Render ``todo`` on ``pool``, ``in_flight`` frames submitted at a time; yields each frame as it is written."""
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    queue = iter(todo)
+    pending = {pool.submit(_render_and_write, i) for i in itertools.islice(queue, in_flight)}
+    while pending:
+        done, pending = wait(pending, return_when=FIRST_COMPLETED)
+        for f in done:
+            yield f.result()
+            nxt = next(queue, None)
+            if nxt is not None:
+                pending.add(pool.submit(_render_and_write, nxt))
 
 
 def ensure_sequence(root, name: str, frames: int | None = None) -> bool:
