@@ -478,11 +478,12 @@ def test_ckernel_builds_once_into_its_cache(tmp_path, monkeypatch):
 def _dies_at_frame_2(i: int) -> int:
     import os
 
-    from mono_map.data.synth import generate
-
     if i == 2:
         os._exit(3)                      # as the OOM killer would end a render worker, mid-frame
-    return generate._render_and_write_real(i)
+    return _REAL_RENDER_AND_WRITE[0](i)
+
+
+_REAL_RENDER_AND_WRITE: list = []
 
 
 def test_a_dead_render_worker_stops_the_run_and_a_new_run_renders_the_rest(tiny_root, tmp_path, monkeypatch):
@@ -495,8 +496,8 @@ def test_a_dead_render_worker_stops_the_run_and_a_new_run_renders_the_rest(tiny_
     # forked workers inherit the patched frame function (spawned ones would import the real one)
     fork = mp.get_context("fork")
     monkeypatch.setattr(generate.mp, "get_context", lambda method=None: fork)
-    monkeypatch.setattr(generate, "_render_and_write_real", generate._render_and_write, raising=False)
-    monkeypatch.setattr(generate, "_render_and_write", _dies_at_frame_2)
+    _REAL_RENDER_AND_WRITE[:] = [generate.render_and_write]
+    monkeypatch.setattr(generate, "render_and_write", _dies_at_frame_2)
     root = tmp_path / "kitti"
     with pytest.raises(MonoMapError, match="synth tiny: a render worker died") as e:
         generate_sequence(load_recipe("tiny"), root, workers=2, quiet=True)

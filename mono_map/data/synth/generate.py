@@ -114,7 +114,8 @@ def _renderer() -> "FrameRenderer":
     return _WORKER["renderer"]
 
 
-def _render_and_write(i: int) -> int:
+def render_and_write(i: int) -> int:
+    """A render worker's task: frame ``i`` of the worker's sequence, rendered and written; returns ``i``."""
     rgb, depth, pts = _renderer().render(i)
     writer.write_frame(_WORKER["seq_dir"], i, rgb, depth, pts)
     return i
@@ -258,7 +259,7 @@ def _render_frames(recipe, seq_dir: Path, todo: list[int], workers: int, quiet: 
         _WORKER["renderer"] = FrameRenderer(recipe, town, 0, poses=_WORKER["poses"])
         try:
             for i in shown(todo):
-                _render_and_write(i)
+                render_and_write(i)
         finally:
             _WORKER.clear()
         return
@@ -294,14 +295,14 @@ def _completed(pool, todo: list[int], in_flight: int):
     from concurrent.futures import FIRST_COMPLETED, wait
 
     queue = iter(todo)
-    pending = {pool.submit(_render_and_write, i) for i in itertools.islice(queue, in_flight)}
+    pending = {pool.submit(render_and_write, i) for i in itertools.islice(queue, in_flight)}
     while pending:
         done, pending = wait(pending, return_when=FIRST_COMPLETED)
         for f in done:
             yield f.result()
             nxt = next(queue, None)
             if nxt is not None:
-                pending.add(pool.submit(_render_and_write, nxt))
+                pending.add(pool.submit(render_and_write, nxt))
 
 
 def ensure_sequence(root, name: str, frames: int | None = None) -> bool:
