@@ -291,15 +291,10 @@ def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
                    lo=box.lo, hi=box.lo + box.dims - 1)
 
 
-def _compute_update_c(kernel, pts: np.ndarray, origin32: np.ndarray, key_origin: np.ndarray, res: float,
-                      max_range: float, discretize_points: bool) -> KeySets | None:
-    """:func:`compute_update` with the compiled kernel throughout (None: box too large for a bitmap).
-
-    One bitmap over the frame's box of keys (reused across frames): the end points' keys are
-    deduplicated through it, marking the occupied cells 2 (``computeDiscreteUpdate``); the rays then
-    mark and emit only cells still 0 — the free cells minus the occupied ones (occupied wins), each once.
-    """
-    from mono_map.mapping.raycast_c import point_keys_c, ray_cells_c, unique_cells_c, zeroed_bitmap
+def _frame_keys(kernel, pts: np.ndarray, key_origin: np.ndarray, res: float):
+    """(float32 points, keys (N, 3), the frame's KeyBox with the origin, its zeroed reused bitmap), or None when
+    the box is too large for a bitmap; MonoMapError for points outside OctoMap's addressable range."""
+    from mono_map.mapping.raycast_c import point_keys_c, zeroed_bitmap
 
     pts32, keys, lo, hi, n_out = point_keys_c(kernel, pts, res, TREE_MAX_VAL)
     if n_out:
@@ -308,7 +303,23 @@ def _compute_update_c(kernel, pts: np.ndarray, origin32: np.ndarray, key_origin:
     box = KeyBox(np.minimum(lo, key_origin), np.maximum(hi, key_origin))
     if box.size > _BITMAP_MAX_CELLS:
         return None
-    mark = zeroed_bitmap(box.size)
+    return pts32, keys, box, zeroed_bitmap(box.size)
+
+
+def _compute_update_c(kernel, pts: np.ndarray, origin32: np.ndarray, key_origin: np.ndarray, res: float,
+                      max_range: float, discretize_points: bool) -> KeySets | None:
+    """:func:`compute_update` with the compiled kernel throughout (None: box too large for a bitmap).
+
+    One bitmap over the frame's box of keys (reused across frames): the end points' keys are
+    deduplicated through it, marking the occupied cells 2 (``computeDiscreteUpdate``); the rays then
+    mark and emit only cells still 0 — the free cells minus the occupied ones (occupied wins), each once.
+    """
+    from mono_map.mapping.raycast_c import ray_cells_c, unique_cells_c
+
+    framed = _frame_keys(kernel, pts, key_origin, res)
+    if framed is None:
+        return None
+    pts32, keys, box, mark = framed
     try:
         if discretize_points:            # one ray per distinct end cell, to the cell's centre
             rows, ends = unique_cells_c(kernel, keys, box.lo, box.strides, mark, res, TREE_MAX_VAL)
@@ -393,16 +404,12 @@ def _nested_updates_c(kernel, pts: np.ndarray, levels: np.ndarray, n_levels: int
     The bitmap over the frame's box (reused across frames) holds 2 for the end cells of the levels cast so
     far and 1 for cells already emitted as free; level by level, that level's new end cells are marked 2
     and its rays emit only cells still 0 (:func:`_compute_update_c`'s kernel, unchanged)."""
-    from mono_map.mapping.raycast_c import point_keys_c, ray_cells_c, unique_cells_c, zeroed_bitmap
+    from mono_map.mapping.raycast_c import ray_cells_c, unique_cells_c
 
-    pts32, keys, lo, hi, n_out = point_keys_c(kernel, pts, res, TREE_MAX_VAL)
-    if n_out:
-        raise MonoMapError(f"points: {n_out} end points lie outside OctoMap's addressable "
-                           f"range (±{TREE_MAX_VAL * res:.0f} m at {res} m)")
-    box = KeyBox(np.minimum(lo, key_origin), np.maximum(hi, key_origin))
-    if box.size > _BITMAP_MAX_CELLS:
+    framed = _frame_keys(kernel, pts, key_origin, res)
+    if framed is None:
         return None
-    mark = zeroed_bitmap(box.size)
+    _, keys, box, mark = framed
     try:
         # each level's distinct end cells not at a lower level (unique_cells skips cells already marked 2)
         ends, end_keys, n_ends = [], [], []
