@@ -449,9 +449,10 @@ def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], sho
     runs once, whatever the number of maps built from them. With a depth predictor that work runs one
     frame ahead in a second thread (the network releases the GIL, and so does the ray casting), so the
     next frame is predicted while the maps integrate this one; a builder's per-frame ``frame_s`` is its own
-    work (selection, back-projection, integration). The maps are the same as frame by frame. Observers are
-    closed at the end, also on error. Take each map with ``builder.result(frames)`` afterwards (one octree in
-    memory at a time)."""
+    work (selection, back-projection, integration; in a group of keep maps, :func:`share_ray_casts`, the
+    first map's includes the group's one selection and ray cast). The maps are the same as frame by frame.
+    Observers are closed at the end, also on error. Take each map with ``builder.result(frames)`` afterwards
+    (one octree in memory at a time)."""
     steps = probs_steps(builders)
     share_ray_casts(builders)
     frames = list(frames)
