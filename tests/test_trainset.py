@@ -144,3 +144,32 @@ def test_sampler_picks_up_towns_rendered_after_it_started(tiny_cache, tmp_path):
     n = len(s)
     shutil.copytree(root / "towns" / SPEC.name, root / "towns" / "t04_copy")   # a town that appears later
     assert s.refresh() == 2 * n and len(s.towns) == 2
+
+
+def _dying_town_worker(args):
+    import os
+
+    os._exit(3)                          # as the OOM killer would end a render worker, mid-town
+
+
+def test_render_trainset_renders_through_workers_and_a_dead_worker_stops_it(tiny_cache, tmp_path, monkeypatch):
+    """The worker pool renders the same cache as render_town in this process; a worker that dies stops the run
+    with one line (multiprocessing.Pool waited forever)."""
+    import multiprocessing as mp
+
+    from mono_map.data.synth import trainset
+    from mono_map.errors import MonoMapError
+
+    logged = []
+    out = trainset.render_trainset(tmp_path / "pool", [SPEC], workers=2, log=logged.append)
+    assert out["frames_rendered"] == SPEC.frames and len(logged) == 1 and SPEC.name in logged[0]
+    a, b = TownCache(tmp_path / "pool" / "towns" / SPEC.name), TownCache(tiny_cache / "towns" / SPEC.name)
+    for name in ("image", "dense", "lidar"):
+        assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name))), name
+    fork = mp.get_context("fork")        # forked workers inherit the patched task (spawned ones would not)
+    monkeypatch.setattr(trainset.mp, "get_context", lambda method=None: fork)
+    monkeypatch.setattr(trainset, "town_worker", _dying_town_worker)
+    with pytest.raises(MonoMapError, match="a render worker died") as e:
+        trainset.render_trainset(tmp_path / "dead", [SPEC, replace(SPEC, name="t04_test2", seed=7)], workers=2,
+                                 log=logged.append)
+    assert "\n" not in str(e.value)

@@ -22,12 +22,15 @@ import multiprocessing as mp
 import os
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from mono_map.data.synth.randomize import TownSpec
+from mono_map.errors import MonoMapError
 
 NO_SURFACE = 65535
 DEPTH_SCALE = 256.0
@@ -87,7 +90,6 @@ class TownCache:
 
 def create_town(root: Path, spec: TownSpec, recipe_hash: str, appearance: dict, K: np.ndarray) -> Path:
     """Allocate (or find) a town's files; a town of another spec/hash under the same name is an error."""
-    from mono_map.errors import MonoMapError
     from mono_map.io import write_json_atomic
 
     d = Path(root) / "towns" / spec.name
@@ -195,7 +197,8 @@ def render_town(root: Path, spec: TownSpec, nthreads: int = 1, log=None) -> int:
     return len(todo)
 
 
-def _worker(args) -> tuple[str, int, float]:
+def town_worker(args) -> tuple[str, int, float]:
+    """A render worker's task: ``(root, spec)`` → the town rendered into the cache (name, frames rendered, s)."""
     root, spec = args
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     t0 = time.perf_counter()
@@ -214,15 +217,23 @@ def render_trainset(root: Path, specs: list[TownSpec], workers: int = 2, log=pri
     from mono_map.data.synth.generate import WORKER_ENV, environment
 
     kernels.library()                       # compile the renderer's kernels once, before the workers load them
-    ctx = mp.get_context("spawn")
-    with environment(WORKER_ENV):           # one BLAS thread per worker (set before the workers import numpy)
-        pool = ctx.Pool(workers)
-    with pool:
-        for name, n, sec in pool.imap_unordered(_worker, [(str(root), s) for s in specs], chunksize=1):
+    # one BLAS thread per worker, set before the workers import numpy: the pool starts its processes as tasks
+    # are asked for, so every town is asked for inside the block
+    with environment(WORKER_ENV):
+        pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
+        futures = [pool.submit(town_worker, (str(root), s)) for s in specs]
+    try:
+        for f in as_completed(futures):
+            name, n, sec = f.result()
             total += n
             el = time.perf_counter() - t0
             log(f"[{time.strftime('%H:%M:%S')}] town {name}: {n} frames in {sec:.0f} s; total {total} frames, "
                 f"{total / max(el, 1e-9):.2f} frames/s overall")
+    except BrokenProcessPool:
+        raise MonoMapError(f"{root}: a render worker died (killed, or out of memory?); the frames written so far "
+                           "are kept and a new run renders the rest") from None
+    finally:                                # towns not started are dropped; the workers finish theirs and exit
+        pool.shutdown(wait=True, cancel_futures=True)
     return {"frames_rendered": total, "seconds": time.perf_counter() - t0}
 
 
