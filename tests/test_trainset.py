@@ -157,7 +157,7 @@ def test_render_trainset_renders_through_workers_and_a_dead_worker_stops_it(tiny
     with one line (multiprocessing.Pool waited forever)."""
     import multiprocessing as mp
 
-    from mono_map.data.synth import trainset
+    from mono_map.data.synth import generate, trainset
     from mono_map.errors import MonoMapError
 
     logged = []
@@ -167,9 +167,9 @@ def test_render_trainset_renders_through_workers_and_a_dead_worker_stops_it(tiny
     for name in ("image", "dense", "lidar"):
         assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name))), name
     fork = mp.get_context("fork")        # forked workers inherit the patched task (spawned ones would not)
-    monkeypatch.setattr(trainset.mp, "get_context", lambda method=None: fork)
+    monkeypatch.setattr(generate.mp, "get_context", lambda method=None: fork)
     monkeypatch.setattr(trainset, "town_worker", _dying_town_worker)
-    with pytest.raises(MonoMapError, match="a render worker died") as e:
+    with pytest.raises(MonoMapError, match="render_trainset: a render worker died") as e:
         trainset.render_trainset(tmp_path / "dead", [SPEC, replace(SPEC, name="t04_test2", seed=7)], workers=2,
                                  log=logged.append)
     assert "\n" not in str(e.value)

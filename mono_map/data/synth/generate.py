@@ -94,6 +94,29 @@ def environment(values: dict):
                 os.environ[k] = v
 
 
+@contextlib.contextmanager
+def worker_pool(n: int, what: str, where, initializer=None, initargs: tuple = ()):
+    """``n`` spawned render processes (``ProcessPoolExecutor``), all started here with ``WORKER_ENV``; on leaving,
+    tasks not started are dropped and the workers finish theirs. A worker that dies (killed, out of memory) ends
+    the block with one MonoMapError naming ``what`` and ``where`` (the frames written there are kept), instead of
+    the wait forever of ``multiprocessing.Pool``."""
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    with environment(WORKER_ENV):    # the pool starts a process per task asked for: start them all here
+        pool = ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=initializer,
+                                   initargs=initargs)
+        for _ in range(n):
+            pool.submit(os.getpid)
+    try:
+        yield pool
+    except BrokenProcessPool:
+        raise MonoMapError(f"{what}: a render worker died (killed, or out of memory?); the frames written so far "
+                           f"are kept under {where} and a new run renders the rest") from None
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def _init_worker(recipe, town_file, seq_dir, nthreads):
     """A render process starts while the parent still builds the town: it imports open3d and computes the
     frame poses now, and reads the town from ``town_file`` (written before any frame is asked for) with its
@@ -236,11 +259,9 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
 def _render_frames(recipe, seq_dir: Path, todo: list[int], workers: int, quiet: bool, town_built) -> None:
     """Build the town and render the frames ``todo`` into ``seq_dir``: in this process with one worker, else
     in ``workers`` spawned processes started before the town is built (their imports and poses overlap it);
-    the town reaches them through a temporary pickle in the system's temporary directory. A worker that dies (killed, out of
-    memory) stops the run with a MonoMapError instead of leaving it waiting; the frames written are kept."""
+    the town reaches them through a temporary pickle in the system's temporary directory. A worker that dies
+    stops the run with a MonoMapError (:func:`worker_pool`); the frames written are kept."""
     import pickle
-    from concurrent.futures import ProcessPoolExecutor
-    from concurrent.futures.process import BrokenProcessPool
 
     from mono_map.data.synth import kernels
     from mono_map.data.synth.town import build_town
@@ -255,8 +276,7 @@ def _render_frames(recipe, seq_dir: Path, todo: list[int], workers: int, quiet: 
     if workers == 1 or len(todo) == 1:
         town = build_town(recipe)
         town_built(town)
-        _WORKER.update(recipe=recipe, seq_dir=seq_dir, nthreads=0, poses=frame_poses(recipe))
-        _WORKER["renderer"] = FrameRenderer(recipe, town, 0, poses=_WORKER["poses"])
+        _WORKER.update(seq_dir=seq_dir, renderer=FrameRenderer(recipe, town, 0))
         try:
             for i in shown(todo):
                 render_and_write(i)
@@ -265,27 +285,18 @@ def _render_frames(recipe, seq_dir: Path, todo: list[int], workers: int, quiet: 
         return
     kernels.library()           # compile the renderer's kernels once, here, before the workers load them
     nproc = min(workers, len(todo))
-    with environment(WORKER_ENV):    # the pool starts a process per task asked for: start them all here
-        pool = ProcessPoolExecutor(nproc, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                                   initargs=(recipe, str(town_file), str(seq_dir), 1))
-        started = [pool.submit(os.getpid) for _ in range(nproc)]
     try:
-        town = build_town(recipe)
-        town_built(town)
-        tmp = town_file.with_suffix(".tmp")
-        with open(tmp, "wb") as f:
-            pickle.dump(town, f, protocol=pickle.HIGHEST_PROTOCOL)
-        os.replace(tmp, town_file)
-        del town
-        for f in started:
-            f.result()
-        for _ in shown(_completed(pool, todo, 2 * nproc)):
-            pass
-    except BrokenProcessPool:
-        raise MonoMapError(f"{desc}: a render worker died (killed, or out of memory?); the frames written so far "
-                           f"are kept under {seq_dir} and a new run renders the rest") from None
-    finally:                     # frames not started are dropped; the workers finish theirs and exit
-        pool.shutdown(wait=True, cancel_futures=True)
+        with worker_pool(nproc, desc, seq_dir, _init_worker, (recipe, str(town_file), str(seq_dir), 1)) as pool:
+            town = build_town(recipe)
+            town_built(town)
+            tmp = town_file.with_suffix(".tmp")
+            with open(tmp, "wb") as f:
+                pickle.dump(town, f, protocol=pickle.HIGHEST_PROTOCOL)
+            os.replace(tmp, town_file)
+            del town
+            for _ in shown(_completed(pool, todo, 2 * nproc)):
+                pass
+    finally:
         town_file.unlink(missing_ok=True)
         town_file.with_suffix(".tmp").unlink(missing_ok=True)
 

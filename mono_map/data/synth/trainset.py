@@ -18,12 +18,10 @@ that exist while the rest render. Everything scales past RAM (memory maps, one t
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
+from concurrent.futures import as_completed
 from dataclasses import asdict
 from pathlib import Path
 
@@ -214,26 +212,16 @@ def render_trainset(root: Path, specs: list[TownSpec], workers: int = 2, log=pri
     t0 = time.perf_counter()
     total = 0
     from mono_map.data.synth import kernels
-    from mono_map.data.synth.generate import WORKER_ENV, environment
+    from mono_map.data.synth.generate import worker_pool
 
     kernels.library()                       # compile the renderer's kernels once, before the workers load them
-    # one BLAS thread per worker, set before the workers import numpy: the pool starts its processes as tasks
-    # are asked for, so every town is asked for inside the block
-    with environment(WORKER_ENV):
-        pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
-        futures = [pool.submit(town_worker, (str(root), s)) for s in specs]
-    try:
-        for f in as_completed(futures):
+    with worker_pool(workers, "render_trainset", root) as pool:
+        for f in as_completed([pool.submit(town_worker, (str(root), s)) for s in specs]):
             name, n, sec = f.result()
             total += n
             el = time.perf_counter() - t0
             log(f"[{time.strftime('%H:%M:%S')}] town {name}: {n} frames in {sec:.0f} s; total {total} frames, "
                 f"{total / max(el, 1e-9):.2f} frames/s overall")
-    except BrokenProcessPool:
-        raise MonoMapError(f"{root}: a render worker died (killed, or out of memory?); the frames written so far "
-                           "are kept and a new run renders the rest") from None
-    finally:                                # towns not started are dropped; the workers finish theirs and exit
-        pool.shutdown(wait=True, cancel_futures=True)
     return {"frames_rendered": total, "seconds": time.perf_counter() - t0}
 
 
