@@ -16,7 +16,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", default=None,
                    help="frames to have (the --frames grammar: N, A:B, 'all'; the prefix up to the last one is "
                         "rendered; default: all of the recipe's)")
-    p.add_argument("--data-root", default=None, help="KITTI odometry root (default $MONO_MAP_DATA or ./data/kitti)")
+    p.add_argument("--data-root", default=None, help="KITTI root (default $MONO_MAP_DATA or ./data/kitti)")
     p.add_argument("--workers", type=int, default=2, help="parallel render processes (default 2)")
     p.add_argument("--force", action="store_true", help="re-render every frame even if present")
     p.add_argument("--layout", choices=("odometry", "raw"), default="odometry",

@@ -1,4 +1,6 @@
-"""KITTI odometry sequences (real or synthetic): a pure validating reader (it never renders or writes).
+"""KITTI odometry sequences and raw drives (real or synthetic): a pure validating reader (it never renders
+or writes). A raw drive name (``2011_09_26_drive_0013_sync``) opens a :class:`KittiRawSequence` with the
+same interface (the raw layout: :mod:`mono_map.data.kitti_raw`); everything below is the odometry layout.
 
 Layout under a data root (the standard KITTI odometry download)::
 
