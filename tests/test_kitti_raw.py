@@ -416,3 +416,14 @@ def test_eigen_ground_truth_as_monodepth2_makes_it(real01_raw):
         assert both.sum() > 0.97 * (ours > 0).sum()
         diff = ours[:-1, :-1][both] - own[1:, 1:][both]
         assert np.median(np.abs(diff)) < 1e-4
+
+
+def test_depth_gt_on_a_real_raw_drive_one_line(real01_raw, tmp_path, capsys):
+    """A real drive has no dense depth: --source depth-gt names depth_02/data, nothing written."""
+    _, raw = real01_raw
+    out = tmp_path / "out"
+    assert cli_main(["build", "--seq", raw.name, "--data-root", str(raw.root), "--source", "depth-gt",
+                     "--frames", "0:2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "depth_02/data" in err[0], err
+    assert not out.exists()

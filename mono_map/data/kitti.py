@@ -352,11 +352,16 @@ class KittiSequence:
             raise MonoMapError(f"{self.path / 'velodyne'}: no velodyne scans for sequence '{self.name}'")
         return read_velodyne_bin(self.velodyne_files[self._check_index(i)])
 
+    @property
+    def depth_dir(self) -> Path:
+        """Where dense ground-truth depth of image_2 would be (synthetic sequences: ``depth_2/``)."""
+        return self.path / "depth_2"
+
     def depth(self, i: int) -> np.ndarray | None:
-        """Dense ground-truth depth of image_2 (metres, 0 = none) if ``depth_2/`` has it, else None."""
+        """Dense ground-truth depth of image_2 (metres, 0 = none) if :attr:`depth_dir` has it, else None."""
         from mono_map.data.depth_png import read_depth_png
 
-        path = self.path / "depth_2" / self.image_files[self._check_index(i)].name
+        path = self.depth_dir / self.image_files[self._check_index(i)].name
         if not path.is_file():
             return None
         depth = read_depth_png(path)
@@ -434,18 +439,10 @@ class KittiRawSequence(KittiSequence):
     def __repr__(self) -> str:
         return f"KittiRawSequence({str(self.root)!r}, {self.name!r}, frames={len(self)})"
 
-    def depth(self, i: int) -> np.ndarray | None:
-        """Dense ground-truth depth of image_02 if ``depth_02/data/`` has it (synthetic drives only), else None."""
-        from mono_map.data.depth_png import read_depth_png
-
-        path = self.path / "depth_02" / "data" / self.image_files[self._check_index(i)].name
-        if not path.is_file():
-            return None
-        depth = read_depth_png(path)
-        if depth.shape != self.image_size:
-            raise MonoMapError(f"{path}: depth is {depth.shape[1]}×{depth.shape[0]}, "
-                               f"expected {self.image_size[1]}×{self.image_size[0]}")
-        return depth
+    @property
+    def depth_dir(self) -> Path:
+        """Dense ground-truth depth of image_02 (mono-map's synthetic drives only): ``depth_02/data/``."""
+        return self.path / "depth_02" / "data"
 
 
 def open_sequence(root: str | os.PathLike | None, name: str) -> KittiSequence:

@@ -144,7 +144,7 @@ def write_raw_drive(seq: KittiSequence, root: str | os.PathLike, drive: str, fra
                 shutil.copyfile(seq.velodyne_files[i], stage / "velodyne_points" / "data" / f"{stem}.bin")
             (stage / "oxts" / "data" / f"{stem}.txt").write_text(fmt(oxts[k][:25]) + " " +
                                                                  " ".join(str(int(x)) for x in oxts[k][25:]) + "\n")
-            depth = seq.path / "depth_2" / seq.image_files[i].name
+            depth = seq.depth_dir / seq.image_files[i].name
             if depth.is_file():
                 (stage / "depth_02" / "data").mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(depth, stage / "depth_02" / "data" / f"{stem}.png")

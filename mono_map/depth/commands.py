@@ -224,7 +224,7 @@ def run_eval_depth(args) -> int:
             for i in idx:
                 gt = seq.lidar_depth(i) if args.gt == "lidar" else seq.depth(i)
                 if gt is None:
-                    raise MonoMapError(f"{seq.path}: no dense depth_2 for frame {i} (--gt dense)")
+                    raise MonoMapError(f"{seq.depth_dir}: no dense depth for frame {i} (--gt dense)")
                 yield f"{i:06d}", seq.image(i), gt
 
         n, where = len(idx), f"seq{args.seq}"

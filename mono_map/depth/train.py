@@ -180,7 +180,7 @@ def build_cache(cfg: RunConfig, model_cfg) -> tuple[np.ndarray, np.ndarray, Path
         h, w = fit_size(*img.shape[:2], model_cfg.input_height, model_cfg.input_width)
         dep = seq.lidar_depth(i) if d.target == "lidar" else seq.depth(i)
         if dep is None:
-            raise MonoMapError(f"{seq.path}: no dense depth_2 for frame {i} (data.target = 'dense')")
+            raise MonoMapError(f"{seq.depth_dir}: no dense depth for frame {i} (data.target = 'dense')")
         images.append(cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA))
         depths.append(downsample_depth(dep, h, w, sparse=d.target == "lidar").astype(np.float16))
     from mono_map.io import atomic_path

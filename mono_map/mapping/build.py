@@ -302,7 +302,7 @@ class MapBuilder:
         image = inputs.image() if self.observers else None
         depth = self.seq.depth(i)
         if depth is None:
-            raise MonoMapError(f"{self.seq.path / 'depth_2'}: no ground-truth depth for frame {i}; --source "
+            raise MonoMapError(f"{self.seq.depth_dir}: no ground-truth depth for frame {i}; --source "
                                f"depth-gt needs a synthetic sequence")
         mask = valid_pixels(depth, *self.depth_range, stride=self.stride)
         if not mask.any():

@@ -190,7 +190,7 @@ def run_build(args) -> int:
     seq = prepare_sequence(args.data_root, args.seq, selection)
     frames = selection.resolve(len(seq))
     if args.source == "depth-gt" and seq.depth(frames[0]) is None:
-        raise MonoMapError(f"--source depth-gt: {seq.path / 'depth_2'} has no ground-truth depth for frame "
+        raise MonoMapError(f"--source depth-gt: {seq.depth_dir} has no ground-truth depth for frame "
                            f"{frames[0]} (a synthetic sequence has it)")
     job = MapJob.of(seq, args.source, frames, keep=args.keep, integrate=args.integrate, distribution=dcfg,
                     octomap=cfg, stride=args.stride, model=args.model, digest=digest)

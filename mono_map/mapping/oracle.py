@@ -89,7 +89,7 @@ class NoisyGroundTruthPredictor:
         [::probs_step, ::probs_step], the same values as at step 1)."""
         gt = seq.depth(i)
         if gt is None:
-            raise MonoMapError(f"{seq.path / 'depth_2'}: no ground-truth depth for frame {i}; the oracle "
+            raise MonoMapError(f"{seq.depth_dir}: no ground-truth depth for frame {i}; the oracle "
                                f"predictor needs a synthetic sequence (use --model CKPT for real data)")
         sig = self.sigma_map(gt)
         rng = np.random.default_rng((self.seed, int(i)))
