@@ -342,6 +342,7 @@ BAD_SPLITS = [  # (id, split lines or None for a missing file, extra options, wh
     ("empty", [""], [], "split.txt"),
     ("missing-file", None, [], "--split"),
     ("none-found", ["2011_09_26/2011_09_26_drive_0002_sync 0000000069 l"], [], "none of the 1 frames"),
+    ("eigen-none-found", "eigen", [], "none of the 697 frames of"),
     ("with-frames", [f"{DATE}/{DRIVE} 0000000001 l"], ["--frames", "0:2"], "--frames"),
     ("with-dense", [f"{DATE}/{DRIVE} 0000000001 l"], ["--gt", "dense"], "--gt dense"),
 ]
@@ -350,7 +351,7 @@ BAD_SPLITS = [  # (id, split lines or None for a missing file, extra options, wh
 @pytest.mark.parametrize("case", BAD_SPLITS, ids=[c[0] for c in BAD_SPLITS])
 def test_bad_split_one_line(raw_root, tmp_path, capsys, case):
     _, lines, extra, names = case
-    split = write_split(tmp_path, lines) if lines is not None else tmp_path / "split.txt"
+    split = tmp_path / "split.txt" if lines is None else "eigen" if lines == "eigen" else write_split(tmp_path, lines)
     out = tmp_path / "out"
     assert cli_main(["eval-depth", "--data-root", str(raw_root), "--split", str(split), "--model", "oracle-none",
                      "--out", str(out), *extra]) == 2
