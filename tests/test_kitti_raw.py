@@ -209,6 +209,8 @@ def test_build_on_raw_and_odometry_layout_same_bytes(raw_root, tmp_path):
 def test_a_date_folder_as_the_root(raw_root):
     seq = open_sequence(raw_root / DATE, DRIVE)
     assert len(seq) == 6 and seq.path == raw_root / DATE / DRIVE
+    with pytest.raises(MonoMapError, match="unsynced, unrectified"):
+        open_sequence(raw_root, DRIVE.replace("_sync", "_extract"))
 
 
 def test_synth_layout_raw(tiny_root, tmp_path, capsys):

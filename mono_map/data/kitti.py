@@ -455,6 +455,9 @@ def open_sequence(root: str | os.PathLike | None, name: str) -> KittiSequence:
     """
     if kitti_raw.drive_date(name) is not None:
         return KittiRawSequence(data_root(root), name)
+    if name.endswith("_extract") and kitti_raw.drive_date(name.removesuffix("_extract") + "_sync") is not None:
+        raise MonoMapError(f"--seq: {name}: an unsynced, unrectified raw drive; mono-map reads the synced and "
+                           f"rectified download ({name.removesuffix('_extract')}_sync)")
     return KittiSequence(data_root(root), name)
 
 
