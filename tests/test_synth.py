@@ -444,19 +444,29 @@ def test_kernels_fall_back_to_numpy_without_a_compiler(tmp_path, monkeypatch, ca
     """No compiler (or MONO_MAP_NO_C=1): ckernel.load gives None with a note, and the renderer its numpy path."""
     from mono_map import ckernel
 
-    src = "int mm_one(void) { return 1; }\n"
-    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path))
+    (tmp_path / "mm_test.c").write_text("int mm_one(void) { return 1; }\n")
+    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path / "cache"))
     monkeypatch.setenv("CC", str(tmp_path / "no_such_cc"))
-    assert ckernel.load("mm_test", src, {"mm_one": ([], None)}) is None
+    assert ckernel.load("mm_test", {"mm_one": ([], None)}, tmp_path, tmp_path / "lib") is None
     assert "compiled mm_test kernel unavailable" in capsys.readouterr().err
     monkeypatch.setenv("MONO_MAP_NO_C", "1")
-    assert ckernel.load("mm_test", src, {"mm_one": ([], None)}) is None
+    assert ckernel.load("mm_test", {"mm_one": ([], None)}, tmp_path, tmp_path / "lib") is None
     from mono_map.data.synth import kernels
 
     assert kernels.library() is None
 
 
+def _twice_source(tmp_path):
+    """A one-function kernel with a local header, in tmp_path/src."""
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "twice.h").write_text("#define FACTOR 2.0f\n")
+    (src / "mm_test.c").write_text('#include "twice.h"\nfloat mm_twice(float x) { return FACTOR * x; }\n')
+    return src
+
+
 def test_ckernel_builds_once_into_its_cache(tmp_path, monkeypatch):
+    """A kernel without an installed library compiles once into the cache; an edited header makes a new one."""
     import ctypes
     import shutil
 
@@ -464,15 +474,58 @@ def test_ckernel_builds_once_into_its_cache(tmp_path, monkeypatch):
 
     if shutil.which("cc") is None:
         pytest.skip("no C compiler")
-    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path))
-    src = "float mm_twice(float x) { return 2.0f * x; }\n"
-    lib = ckernel.load("mm_test", src, {"mm_twice": ([ctypes.c_float], ctypes.c_float)})
+    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path / "cache"))
+    src, sig = _twice_source(tmp_path), {"mm_twice": ([ctypes.c_float], ctypes.c_float)}
+    lib = ckernel.load("mm_test", sig, src, tmp_path / "lib")
     assert lib is not None and lib.mm_twice(1.25) == 2.5
-    built = sorted(tmp_path.glob("mm_test_*.so"))
-    assert len(built) == 1
+    built = sorted((tmp_path / "cache").glob("mm_test_*.so"))
+    assert len(built) == 1 and ckernel.digest("mm_test", src) in built[0].name
     mtime = built[0].stat().st_mtime_ns
-    assert ckernel.load("mm_test", src, {"mm_twice": ([ctypes.c_float], ctypes.c_float)}) is not None
-    assert built[0].stat().st_mtime_ns == mtime and sorted(tmp_path.glob("mm_test_*")) == built
+    assert ckernel.load("mm_test", sig, src, tmp_path / "lib") is not None
+    assert built[0].stat().st_mtime_ns == mtime and sorted((tmp_path / "cache").glob("mm_test_*")) == built
+    (src / "twice.h").write_text("#define FACTOR 3.0f\n")          # the header is part of the digest
+    assert ckernel.load("mm_test", sig, src, tmp_path / "lib").mm_twice(1.25) == 3.75
+    assert len(list((tmp_path / "cache").glob("mm_test_*.so"))) == 2
+
+
+def test_ckernel_takes_the_installed_library_only_while_current(tmp_path, monkeypatch):
+    """The library built at install (<name>_<digest>.so) is loaded as it is; once the source changes its
+    digest no longer matches and the source is compiled into the cache instead."""
+    import ctypes
+    import shutil
+
+    from mono_map import ckernel
+
+    if shutil.which("cc") is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path / "cache"))
+    src, sig = _twice_source(tmp_path), {"mm_twice": ([ctypes.c_float], ctypes.c_float)}
+    installed = tmp_path / "lib" / ckernel.built_name("mm_test", src)
+    ckernel.compile_library(src / "mm_test.c", installed)
+    assert ckernel.library_path("mm_test", src, tmp_path / "lib") == installed
+    assert ckernel.load("mm_test", sig, src, tmp_path / "lib").mm_twice(2.0) == 4.0
+    assert not (tmp_path / "cache").exists()                      # nothing compiled at run time
+    (src / "mm_test.c").write_text('#include "twice.h"\nfloat mm_twice(float x) { return FACTOR * x + 1.0f; }\n')
+    stale = ckernel.library_path("mm_test", src, tmp_path / "lib")
+    assert stale != installed and stale.parent == tmp_path / "cache"
+    assert ckernel.load("mm_test", sig, src, tmp_path / "lib").mm_twice(2.0) == 5.0
+
+
+def test_synth_header_matches_materials():
+    """csrc/synth_materials.h holds materials.py's ids (MAT_<NAME>) and LiDAR reflectances, value for value."""
+    import re
+
+    from mono_map import ckernel
+    from mono_map.data.synth import materials as M
+
+    text = (ckernel.SOURCE_DIR / "synth_materials.h").read_text()
+    defines = {name: int(v) for name, v in re.findall(r"#define MAT_(\w+) (\d+)", text)}
+    assert defines == {k: v for k, v in vars(M).items() if k.isupper() and isinstance(v, int)
+                       and k not in ("LIDAR_REFL",) and not k.startswith("_")}
+    body = re.search(r"lidar_refl\(int m\) \{ switch \(m\) \{ (.*) default: return ([0-9.]+); \} \}", text)
+    cases = {int(m): float(r) for m, r in re.findall(r"case (\d+): return ([0-9.e-]+);", body.group(1))}
+    assert cases == {int(m): float(r) for m, r in M.LIDAR_REFL.items()}
+    assert float(body.group(2)) == 0.3
 
 
 def _dies_at_frame_2(i: int) -> int:
