@@ -12,8 +12,6 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from mono_map.data.synth.randomize import training_towns, validation_town  # noqa: E402
 from mono_map.data.synth.trainset import default_root, render_trainset  # noqa: E402
 

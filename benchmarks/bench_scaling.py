@@ -2,7 +2,7 @@
 """Scaling study of ``mono-map build``: wall time, frames/s, peak RSS and map memory against the number
 of frames (issue 14).
 
-    python tools/bench_scaling.py --data-root ~/.cache/mono-map/data/kitti_full \
+    python benchmarks/bench_scaling.py --data-root ~/.cache/mono-map/data/kitti_full \
         --sizes 500,1000,2000,4541 --sources lidar-fov,mono --out outputs/scaling
 
 Each (source, size) is one ``mono-map build --frames 0:N`` child process; its peak RSS and CPU time come
@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 
 def frames_available(data_root: Path, seq: str) -> int:
