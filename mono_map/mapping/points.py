@@ -15,7 +15,7 @@ from mono_map import ckernel, geometry
 
 # pixels_to_world and lidar_to_world in one pass over the image / scan (mono_map/csrc/points.c): the float64
 # operations of the numpy forms in the same order (built without fused multiply-adds: numpy's bits), 6-12x faster
-# than their temporaries (docs/results.md).
+# than their temporaries (docs/history/results-log.md).
 _P, _I64 = ctypes.c_void_p, ctypes.c_int64
 FOV_MIN_DEPTH = 1e-3        # metres in front of image_2 for a LiDAR point to count as in view
 _LIB: list = []
