@@ -16,9 +16,14 @@ def register(subparsers) -> None:
     p.add_argument("--frames", default=None,
                    help="frames to have (the --frames grammar: N, A:B, 'all'; the prefix up to the last one is "
                         "rendered; default: all of the recipe's)")
-    p.add_argument("--data-root", default=None, help="KITTI odometry root (default $MONO_MAP_DATA or ./data/kitti)")
+    p.add_argument("--data-root", default=None, help="KITTI root (default $MONO_MAP_DATA or ./data/kitti)")
     p.add_argument("--workers", type=int, default=2, help="parallel render processes (default 2)")
     p.add_argument("--force", action="store_true", help="re-render every frame even if present")
+    p.add_argument("--layout", choices=("odometry", "raw"), default="odometry",
+                   help="raw: also write the rendered frames as a KITTI raw drive (OXTS, the three date-folder "
+                        "calibration files; docs/data.md), e.g. <root>/2000_01_01/2000_01_01_drive_NAME_sync")
+    p.add_argument("--drive", default=None,
+                   help="with --layout raw: the drive's name (default 2000_01_01_drive_<recipe>_sync)")
     p.set_defaults(func=run_synth)
 
 
@@ -38,6 +43,17 @@ def run_synth(args: argparse.Namespace) -> int:
     if n is not None and n > recipe.frames:
         raise MonoMapError(f"--frames: {frames.text!r} needs {n} frames; recipe {recipe.name} has {recipe.frames}")
     root = check_data_root(args.data_root)
+    if args.drive is not None and args.layout != "raw":
+        raise MonoMapError("--drive: names a raw drive; pass --layout raw")
+    drive = None
+    if args.layout == "raw":
+        from mono_map.data.kitti_raw import drive_date
+        from mono_map.data.kitti_raw_writer import synthetic_drive_name
+
+        drive = args.drive or synthetic_drive_name(recipe.name)
+        if drive_date(drive) is None:
+            raise MonoMapError(f"--drive: '{drive}' is not a raw drive name (YYYY_MM_DD_drive_NAME_sync, NAME "
+                               "letters and digits)")
     t0 = time.perf_counter()
     seq_dir = generate_sequence(recipe, root, frames=n, workers=args.workers, force=args.force)
     dt = time.perf_counter() - t0
@@ -46,4 +62,11 @@ def run_synth(args: argparse.Namespace) -> int:
     n = read_marker(seq_dir)["n_frames"]
     size = sum(p.stat().st_size for p in seq_dir.rglob("*") if p.is_file())
     print(f"sequence {recipe.name}: {n} frames in {seq_dir} ({size / 1e6:.0f} MB), {dt:.1f} s", file=sys.stderr)
+    if drive is not None:
+        from mono_map.data.kitti import KittiSequence
+        from mono_map.data.kitti_raw_writer import write_raw_drive
+
+        seq = KittiSequence(root, recipe.name)
+        out = write_raw_drive(seq, root, drive, frames=list(range(n)), force=True)
+        print(f"raw drive {drive}: {n} frames in {out} (open it with --seq {drive})", file=sys.stderr)
     return 0

@@ -1,4 +1,6 @@
-"""KITTI odometry sequences (real or synthetic): a pure validating reader (it never renders or writes).
+"""KITTI odometry sequences and raw drives (real or synthetic): a pure validating reader (it never renders
+or writes). A raw drive name (``2011_09_26_drive_0013_sync``) opens a :class:`KittiRawSequence` with the
+same interface (the raw layout: :mod:`mono_map.data.kitti_raw`); everything below is the odometry layout.
 
 Layout under a data root (the standard KITTI odometry download)::
 
@@ -25,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from mono_map import geometry
+from mono_map.data import kitti_raw
 from mono_map.errors import MonoMapError
 from mono_map.paths import data_root
 
@@ -369,12 +372,92 @@ class KittiSequence:
         return geometry.lidar_depth_image(pts_cam2, self.calib.K2, *self.image_size)
 
 
+def read_raw_calibration(date_dir: str | os.PathLike) -> kitti_raw.RawCalibration:
+    """The three calibration files of a raw date folder, parsed and checked (:func:`kitti_raw.raw_calibration`)."""
+    paths = tuple(Path(date_dir) / f for f in kitti_raw.CALIB_FILES)
+    parsed = [parse_calib_text(kitti_raw.blank_calib_time(_read_text(p, "raw calibration file")), p) for p in paths]
+    return kitti_raw.raw_calibration(*parsed, paths=paths)
+
+
+class KittiRawSequence(KittiSequence):
+    """A validated KITTI raw drive (``YYYY_MM_DD_drive_NNNN_sync``) with the odometry sequence's interface.
+
+    ``root`` is a raw root (holding ``YYYY_MM_DD/``) or the date folder itself. Calibration from the
+    date folder (``calib.P2`` = P_rect_02, ``calib.T_cam0_velo`` = R_rect_00 · [R|T]); poses from OXTS as
+    rectified cam0 in the first frame's cam0 (:mod:`mono_map.data.kitti_raw`); ``times`` from
+    ``image_02/timestamps.txt`` in seconds since the first frame. ``raw_calib`` keeps the whole chain.
+    """
+
+    def __init__(self, root: str | os.PathLike, name: str):
+        self.root = Path(root)
+        self.name = name
+        date = kitti_raw.drive_date(name)
+        if date is None:
+            raise MonoMapError(f"'{name}' is not a raw drive name (YYYY_MM_DD_drive_NNNN_sync)")
+        candidates = (self.root / date / name, self.root / name)
+        self.path = next((p for p in candidates if p.is_dir()), candidates[0])
+        if not self.path.is_dir():
+            raise MonoMapError(
+                f"{self.path}: raw drive '{name}' not found (expected the KITTI raw layout "
+                f"{date}/{name}/{{image_02,velodyne_points,oxts}} and {date}/calib_*.txt under {self.root})")
+        self.raw_calib = read_raw_calibration(self.path.parent)
+        rc = self.raw_calib
+        self.calib = Calibration(P2=rc.P_rect_02, T_cam0_velo=rc.T_cam0_velo)
+        self.image_files = _listing(self.path / "image_02" / "data", ".png")
+        self.velodyne_files = _listing(self.path / "velodyne_points" / "data", ".bin")
+        oxts_files = _listing(self.path / "oxts" / "data", ".txt")
+        n = len(self.image_files)
+        if n == 0:
+            raise MonoMapError(f"{self.path / 'image_02' / 'data'}: no PNG images")
+        stamp_path = self.path / "image_02" / "timestamps.txt"
+        times = kitti_raw.parse_timestamps(_read_text(stamp_path, "timestamps file"), stamp_path)
+        if len(times) != n:
+            raise MonoMapError(f"{stamp_path}: {len(times)} timestamps for {n} images in image_02/data")
+        for folder, files, what in ((self.path / "oxts" / "data", oxts_files, "OXTS packets"),
+                                    (self.path / "velodyne_points" / "data", self.velodyne_files, "scans")):
+            if files or what != "scans":   # OXTS is required, scans are optional
+                if len(files) != n:
+                    raise MonoMapError(f"{folder}: {len(files)} {what} for {n} images in image_02/data")
+                bad = next((f for f, g in zip(files, self.image_files) if f.stem != g.stem), None)
+                if bad is not None:
+                    raise MonoMapError(f"{bad}: no image of that frame in image_02/data (frames must match by name)")
+        calib_path = self.path.parent / kitti_raw.CALIB_FILES[0]
+        self.image_size = check_images(self.image_files, rc.P_rect_02, calib_path)
+        if self.image_size != rc.image_size:
+            raise MonoMapError(f"{self.image_files[0]}: image is {self.image_size[1]}×{self.image_size[0]}, but "
+                               f"{calib_path}'s S_rect_02 says {rc.image_size[1]}×{rc.image_size[0]}")
+        oxts = np.stack([kitti_raw.parse_oxts_text(_read_text(f, "OXTS file"), f) for f in oxts_files])
+        self.times = times
+        self.poses_cam0 = kitti_raw.poses_cam0(kitti_raw.oxts_poses(oxts), rc.T_cam0_imu)
+        self.pose_path = self.path / "oxts"
+
+    def __repr__(self) -> str:
+        return f"KittiRawSequence({str(self.root)!r}, {self.name!r}, frames={len(self)})"
+
+    def depth(self, i: int) -> np.ndarray | None:
+        """Dense ground-truth depth of image_02 if ``depth_02/data/`` has it (synthetic drives only), else None."""
+        from mono_map.data.depth_png import read_depth_png
+
+        path = self.path / "depth_02" / "data" / self.image_files[self._check_index(i)].name
+        if not path.is_file():
+            return None
+        depth = read_depth_png(path)
+        if depth.shape != self.image_size:
+            raise MonoMapError(f"{path}: depth is {depth.shape[1]}×{depth.shape[0]}, "
+                               f"expected {self.image_size[1]}×{self.image_size[0]}")
+        return depth
+
+
 def open_sequence(root: str | os.PathLike | None, name: str) -> KittiSequence:
-    """Open and validate sequence ``name`` under ``root`` (``None`` → :func:`mono_map.paths.data_root`).
+    """Open and validate sequence ``name`` under ``root`` (``None`` → :func:`mono_map.paths.data_root`):
+    a raw drive name (``2011_09_26_drive_0013_sync``) opens a :class:`KittiRawSequence`, any other an
+    odometry :class:`KittiSequence`; both read alike downstream.
 
     Only reads; a command that may render a missing synthetic sequence calls
     :func:`mono_map.data.prepare.prepare_sequence` instead.
     """
+    if kitti_raw.drive_date(name) is not None:
+        return KittiRawSequence(data_root(root), name)
     return KittiSequence(data_root(root), name)
 
 

@@ -51,6 +51,10 @@ def register(subparsers) -> None:
                    help="evaluate on a town of the training cache instead (e.g. val09, or a training town to "
                         "measure the fit on training frames); --frames index its frames")
     p.add_argument("--trainset", default="default", help="training cache directory (default ~/.cache/mono-map/trainset)")
+    p.add_argument("--split", default=None,
+                   help="evaluate the frames of a KITTI raw split found under --data-root (a raw root): 'eigen' "
+                        "(Eigen's 697 test frames) or a file of 'DATE/DRIVE FRAME l' lines; Eigen's protocol "
+                        "(raw-calibration LiDAR, Garg crop, 1e-3-80 m) beside full-image numbers")
     p.add_argument("--cap", type=float, default=80.0, help="maximum ground-truth depth (m)")
     p.add_argument("--garg-crop", action="store_true", help="evaluate inside Garg's crop only")
     p.add_argument("--out", default="outputs/eval_depth", help="output folder (JSON, Markdown, PNG)")
@@ -184,6 +188,7 @@ def run_eval_depth(args) -> int:
         raise MonoMapError(f"--cap: must be a positive depth in metres, got {args.cap}")
     if args.kitti_object and not Path(args.kitti_object).is_dir():
         raise MonoMapError(f"--kitti-object: {args.kitti_object}: no such folder")
+    selection_split = check_split_args(args) if args.split else None
     prepare_output_dir(args.out)
     torch.set_num_threads(max(1, args.threads))
     predictors = {}
@@ -193,6 +198,8 @@ def run_eval_depth(args) -> int:
         key = m if m in shipped else p.training.get("name") or p.head   # the run's name (e.g. v2-binary-k32)
         key = key if key not in predictors else f"{key} ({m})"
         predictors[key] = p
+    if selection_split is not None:
+        return run_split(args, selection_split, predictors)
     if args.kitti_object:
         frames = object_frames(args.kitti_object)
         make = lambda: iter(frames)  # noqa: E731
@@ -232,6 +239,63 @@ def run_eval_depth(args) -> int:
     write_text_atomic(out / f"depth_{where}.md", md)
     plot_sparsification(results, out / f"sparsification_{where}.png")
     plot_hypotheses(results, out / f"hypotheses_{where}.png")
+    print(md)
+    print(f"wrote {out}/depth_{where}.(json|md), sparsification_{where}.png, hypotheses_{where}.png")
+    return 0
+
+
+def check_split_args(args):
+    """``eval-depth --split``: refuse options it does not take, then find the split's frames (before any work)."""
+    from mono_map.data.prepare import check_data_root
+    from mono_map.eval.depth_evaluation import split_frames
+
+    for option, given in (("--kitti-object", args.kitti_object), ("--trainset-town", args.trainset_town),
+                          ("--frames", args.frames), ("--garg-crop", args.garg_crop), ("--gt dense", args.gt == "dense")):
+        if given:
+            raise MonoMapError(f"{option}: not with --split (the split names its frames; its protocol fixes the "
+                               "ground truth and crop)")
+    if args.cap != 80.0:
+        raise MonoMapError("--cap: not with --split (Eigen's protocol caps at 80 m)")
+    root = check_data_root(args.data_root)
+    if not root.is_dir():
+        raise MonoMapError(f"--data-root: {root}: no such folder (a KITTI raw root holding YYYY_MM_DD/ folders)")
+    sel = split_frames(root, args.split)
+    if not sel.frames:
+        eg = (f"{sel.missing_drives[0][:10]}/{sel.missing_drives[0]}/image_02/data" if sel.missing_drives
+              else "the drives' listed frames")
+        raise MonoMapError(f"--split: none of the {sel.n_listed} frames of {sel.path} found under {root} "
+                           f"(expected DATE/DRIVE/image_02/data/NNNNNNNNNN.png, e.g. {eg})")
+    print(f"eval-depth: {len(sel.frames)} of the {sel.n_listed} frames of {sel.path.name} found under {root} "
+          f"({len({f[0] for f in sel.frames})} drives; {len(sel.missing_drives)} listed drives missing)",
+          file=sys.stderr)
+    return sel
+
+
+def run_split(args, sel, predictors: dict) -> int:
+    """eval-depth --split: each model under Eigen's protocol and over the full image; Table I + the usual report."""
+    from mono_map.eval.depth_evaluation import eigen_frames, evaluate_model, markdown_report, table_one
+    from mono_map.io import write_json_atomic, write_text_atomic
+    from mono_map.viz.plots import plot_hypotheses, plot_sparsification
+
+    n = len(sel.frames)
+    results = {"eigen": {}, "full": {}}
+    for h, p in predictors.items():
+        results["eigen"][h] = evaluate_model(p, eigen_frames(sel, "eigen"), n, cap=80.0, garg_crop=True,
+                                             desc=f"eval {h} (Eigen)")
+        results["full"][h] = evaluate_model(p, eigen_frames(sel, "full"), n, cap=80.0, garg_crop=False,
+                                            desc=f"eval {h} (full image)")
+    where = "eigen" if args.split == "eigen" else f"split_{sel.path.stem}"
+    title = f"Depth evaluation on the {sel.path.name} split ({n} of {sel.n_listed} frames found)"
+    out = Path(args.out)
+    write_json_atomic(out / f"depth_{where}.json", {
+        "title": title, "split": str(sel.path), "n_listed": sel.n_listed, "n_found": n,
+        "missing_drives": sel.missing_drives, "args": {k: v for k, v in vars(args).items() if k != "func"},
+        "results": results})
+    md = (table_one(results, title, n, sel.n_listed) + "\n"
+          + markdown_report(results["eigen"], f"{title}: Eigen's protocol in detail").replace("# ", "## ", 1))
+    write_text_atomic(out / f"depth_{where}.md", md)
+    plot_sparsification(results["eigen"], out / f"sparsification_{where}.png")
+    plot_hypotheses(results["eigen"], out / f"hypotheses_{where}.png")
     print(md)
     print(f"wrote {out}/depth_{where}.(json|md), sparsification_{where}.png, hypotheses_{where}.png")
     return 0

@@ -6,6 +6,7 @@ hypotheses (Table III), ms/frame — and a Markdown report (the command writes J
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
@@ -65,6 +66,73 @@ def trainset_frames(town, indices, gt: str = "lidar") -> list[tuple[str, np.ndar
     return out
 
 
+@dataclass(frozen=True)
+class SplitSelection:
+    """The frames of a split file found under a raw root: ``frames`` [(drive, frame number, sequence, index)],
+    ``n_listed`` lines, ``missing_drives`` drive folders not under the root."""
+
+    path: Path
+    frames: list
+    n_listed: int
+    missing_drives: list[str]
+
+
+def split_path(split: str) -> Path:
+    """``eigen`` → the packaged Eigen test split (``data/kitti_assets/eigen_test_files.txt``), else a file path."""
+    from mono_map.errors import MonoMapError
+    from mono_map.paths import KITTI_ASSETS_DIR
+
+    path = KITTI_ASSETS_DIR / "eigen_test_files.txt" if split == "eigen" else Path(split).expanduser()
+    if not path.is_file():
+        raise MonoMapError(f"--split: {split}: no such split file (eigen, or a file of 'DATE/DRIVE FRAME l' lines)")
+    return path
+
+
+def split_frames(root: str | Path, split: str) -> SplitSelection:
+    """The frames of split ``split`` (``eigen`` or a file) present under the raw root ``root``; a drive that is
+    there is opened (and validated) once; a listed frame its drive lacks is left out, like a missing drive."""
+    from mono_map.data.kitti import open_sequence
+    from mono_map.data.kitti_raw import parse_split
+    from mono_map.errors import MonoMapError
+
+    path = split_path(split)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MonoMapError(f"{path}: unreadable split file ({exc.__class__.__name__})") from None
+    lines = parse_split(text, path)
+    root = Path(root)
+    seqs, missing, frames = {}, [], []
+    for line in lines:
+        if line.drive not in seqs:
+            there = (root / line.date / line.drive).is_dir() or (root / line.drive).is_dir()
+            seqs[line.drive] = open_sequence(root, line.drive) if there else None
+            if not there:
+                missing.append(line.drive)
+        seq = seqs[line.drive]
+        if seq is None:
+            continue
+        index = {int(f.stem): i for i, f in enumerate(seq.image_files) if f.stem.isdigit()}
+        if line.frame in index:
+            frames.append((line.drive, line.frame, seq, index[line.frame]))
+    return SplitSelection(path, frames, len(lines), missing)
+
+
+def eigen_frames(selection: SplitSelection, protocol: str = "eigen"):
+    """Yield (name, image, ground truth) of a split's frames: ``eigen`` = LiDAR projected as Eigen's protocol
+    does (:func:`mono_map.data.kitti_raw.eigen_depth_map`, raw calibration), ``full`` = mono-map's own
+    projection (``seq.lidar_depth``)."""
+    from mono_map.data.kitti_raw import eigen_depth_map
+
+    for drive, frame, seq, i in selection.frames:
+        if protocol == "eigen":
+            rc = seq.raw_calib
+            gt = eigen_depth_map(seq.velodyne(i), rc.P_rect_02, rc.T_cam0_velo, *seq.image_size)
+        else:
+            gt = seq.lidar_depth(i)
+        yield f"{drive}_{frame:010d}", seq.image(i), gt
+
+
 def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray]], n_frames: int | None = None,
                    cap: float = 80.0, garg_crop: bool = False, time_frames: int = 10, desc: str = "") -> dict:
     """Run ``predictor`` over (name, image, gt depth) frames and collect every statistic."""
@@ -75,7 +143,8 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
     from mono_map.progress import progress
 
     bins = predictor.bins
-    per = {"log": [], "linear": [], "argmax": []}
+    per = {"log": [], "linear": [], "argmax": [], "median": []}
+    ratios = []
     pooled = {k: [] for k in ("gt", "log", "linear", "argmax", "entropy", "std_log", "modes", "top_bins")}
     times = []
     names = []
@@ -122,6 +191,9 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         for key, idx in (("log", 0), ("linear", 1), ("argmax", 2)):
             per[key].append(image_errors(gt, maps[idx], cap, garg_crop=garg_crop))
             pooled[key].append(clip(maps[idx][m]))
+        if m.any():   # monocular methods' convention: each image scaled by median(gt) / median(prediction)
+            ratios.append(float(np.median(gt[m]) / np.median(maps[0][m])))
+            per["median"].append(image_errors(gt, maps[0] * ratios[-1], cap, garg_crop=garg_crop))
         pooled["gt"].append(gt[m].astype(np.float64))
         pooled["entropy"].append(maps[3][m])
         pooled["std_log"].append(maps[4][m])
@@ -142,6 +214,8 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         "per_frame": {n: {k: float(v) for k, v in e.items()} for n, e in zip(names, per["log"])},
         "metrics_linear": mean_errors(per["linear"]),
         "metrics_argmax": mean_errors(per["argmax"]),
+        "metrics_median_scaled": mean_errors(per["median"]),
+        "median_ratio": {"median": float(np.median(ratios)), "std": float(np.std(ratios))} if ratios else None,
         "sparsification": spars,
         "auc_std_log": spars_std["auc"],
         # an uncertainty equal at every pixel (l2, berhu, MHL with one hypothesis) ranks nothing: its AUCs are
@@ -220,3 +294,18 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
               "their M repeat) and give the same M in both tables."]
     return "\n".join(L) + "\n"
 
+
+
+def table_one(results: dict[str, dict[str, dict]], title: str, found: int, listed: int) -> str:
+    """Table-I-style Markdown: per model and protocol (``results[protocol][model]``) the seven standard metrics."""
+    keys = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+    rows = (("eigen", "metrics", "Eigen: raw-calibration LiDAR, Garg crop, 1e-3–80 m"),
+            ("eigen", "metrics_median_scaled", "Eigen, per-image median scaling"),
+            ("full", "metrics", "full image, mono-map's LiDAR projection, 1e-3–80 m"))
+    L = [f"# {title}", "", f"{found} of the {listed} frames of the split found; depth = log-space expectation.", "",
+         "| model | protocol | " + " | ".join(LABELS[k] for k in keys) + " |", "|---|---|" + "---|" * len(keys)]
+    for model in results["eigen"]:
+        for protocol, field, label in rows:
+            m = results[protocol][model][field]
+            L.append(f"| {model} | {label} | " + " | ".join(f"{m[k]:.3f}" for k in keys) + " |")
+    return "\n".join(L) + "\n"

@@ -84,7 +84,7 @@ def register(subparsers) -> None:
     b.add_argument("--model", default=None,
                    help="depth checkpoint (default: the shipped binary model); 'oracle' = noisy ground truth "
                         "(synthetic sequences only, for development)")
-    b.add_argument("--data-root", default=None, help="KITTI odometry root (default $MONO_MAP_DATA or ./data/kitti)")
+    b.add_argument("--data-root", default=None, help="KITTI root: odometry layout, or raw (then --seq YYYY_MM_DD_drive_NNNN_sync) (default $MONO_MAP_DATA or ./data/kitti)")
     b.add_argument("--out", default=None, help="output directory (default outputs/seq<SEQ>)")
     b.add_argument("--name", default=None, help="output file stem (default from source/keep/res)")
     b.add_argument("--viewer", action="store_true", help="stream the build to a spawned rerun viewer")
