@@ -179,9 +179,7 @@ def run_eval_depth(args) -> int:
     from mono_map.eval.depth_evaluation import evaluate_model, markdown_report, object_frames
     from mono_map.viz.plots import plot_hypotheses, plot_sparsification
     from mono_map.depth.inference import DepthPredictor, shipped_names
-    from mono_map.io import write_json_atomic, write_text_atomic
-
-    from mono_map.io import prepare_output_dir
+    from mono_map.io import prepare_output_dir, staged_dir, write_json_atomic, write_text_atomic
 
     selection = parse_frames(args.frames, default=EVAL_FRAMES)
     if args.cap <= 0 or args.cap != args.cap:
@@ -233,12 +231,13 @@ def run_eval_depth(args) -> int:
     results = {h: evaluate_model(p, make(), n, cap=args.cap, garg_crop=args.garg_crop, desc=f"eval {h}")
                for h, p in predictors.items()}
     out = Path(args.out)
-    write_json_atomic(out / f"depth_{where}.json", {"title": title, "args": {k: v for k, v in vars(args).items()
-                                                                              if k != "func"}, "results": results})
     md = markdown_report(results, title)
-    write_text_atomic(out / f"depth_{where}.md", md)
-    plot_sparsification(results, out / f"sparsification_{where}.png")
-    plot_hypotheses(results, out / f"hypotheses_{where}.png")
+    with staged_dir(out) as stage:  # the report, its JSON and both pictures: all published or none
+        write_json_atomic(stage / f"depth_{where}.json", {"title": title, "args": {k: v for k, v in vars(args).items()
+                                                                                    if k != "func"}, "results": results})
+        write_text_atomic(stage / f"depth_{where}.md", md)
+        plot_sparsification(results, stage / f"sparsification_{where}.png")
+        plot_hypotheses(results, stage / f"hypotheses_{where}.png")
     print(md)
     print(f"wrote {out}/depth_{where}.(json|md), sparsification_{where}.png, hypotheses_{where}.png")
     return 0

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from mono_map.errors import MonoMapError
+from mono_map.schema import bounded, check_fields
 
 HELD_OUT = {"00"}
 
@@ -29,38 +30,38 @@ HELD_OUT = {"00"}
 @dataclass(frozen=True)
 class DataConfig:
     root: str | None = None                          # KITTI root (None -> mono_map.paths.data_root)
-    sequences: tuple = ("05", "06", "07", "08", "09", "10")
-    frames: int = 0                                  # leading frames of each sequence (0 = all; generated if missing)
-    frame_step: int = 1                              # use every n-th of them
-    target: str = "lidar"                            # "lidar" (velodyne into image_2) or "dense" (depth_2 PNGs)
-    cache_dir: str = "data/cache"
+    sequences: tuple = field(default=("05", "06", "07", "08", "09", "10"), metadata=bounded(item=str))
+    frames: int = field(default=0, metadata=bounded(lo=0))  # leading frames of each sequence (0 = all; generated if missing)
+    frame_step: int = field(default=1, metadata=bounded(lo=1))  # use every n-th of them
+    target: str = field(default="lidar", metadata=bounded(choices=("lidar", "dense")))  # velodyne into image_2 / depth_2 PNGs
+    cache_dir: str = field(default="data/cache", metadata=bounded(nonempty=True))
     trainset: str = ""                               # randomised-town cache (data/synth/trainset.py); "" = sequences
-    towns: tuple = ()                                # trainset towns to train on (empty = all but the validation town)
+    towns: tuple = field(default=(), metadata=bounded(item=str))  # trainset towns to train on (empty = all but the validation town)
     validation_town: str = "val09"                   # held-out trainset town for the learning curve ("" = none)
-    validation_frames: int = 24                      # frames of it scored at every validation
-    sky_stride: int = 3                              # lidar targets: no-surface (sky) labels on this pixel grid
-    max_targets: int = 12000                         # target pixels sampled per crop (0 = all; dense targets)
+    validation_frames: int = field(default=24, metadata=bounded(lo=1))  # frames of it scored at every validation
+    sky_stride: int = field(default=3, metadata=bounded(lo=1))  # lidar targets: no-surface (sky) labels on this pixel grid
+    max_targets: int = field(default=12000, metadata=bounded(lo=0))  # target pixels sampled per crop (0 = all; dense targets)
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    steps: int = 1500
-    batch_size: int = 8
-    crop: tuple = (128, 416)                         # random crop (H, W) of the resized frames, pixels
-    lr: float = 1e-4                                 # Adam initial learning rate (paper: 1e-4)
-    lr_decay_at: float = 0.75                        # fraction of steps after which lr *= lr_decay (paper: 45/60 epochs)
-    lr_decay: float = 0.1
+    steps: int = field(default=1500, metadata=bounded(lo=1))
+    batch_size: int = field(default=8, metadata=bounded(lo=1, hi=4096))
+    crop: tuple = field(default=(128, 416), metadata=bounded(item=int, length=2, lo=32))  # random crop (H, W) of the resized frames, pixels
+    lr: float = field(default=1e-4, metadata=bounded(lo=0, hi=1, lo_open=True))  # Adam initial learning rate (paper: 1e-4)
+    lr_decay_at: float = field(default=0.75, metadata=bounded(lo=0, hi=1))  # fraction of steps after which lr *= lr_decay (paper: 45/60 epochs)
+    lr_decay: float = field(default=0.1, metadata=bounded(lo=0, hi=1, lo_open=True))
     augment: bool = True
-    seed: int = 0
-    threads: int = 2
-    checkpoint_every: int = 250
-    log_every: int = 25
-    work_dir: str = "outputs/train"                  # resumable checkpoints (with optimizer state)
+    seed: int = field(default=0, metadata=bounded(lo=0))
+    threads: int = field(default=2, metadata=bounded(lo=1, hi=1024))
+    checkpoint_every: int = field(default=250, metadata=bounded(lo=1))
+    log_every: int = field(default=25, metadata=bounded(lo=1))
+    work_dir: str = field(default="outputs/train", metadata=bounded(nonempty=True))  # resumable checkpoints (with optimizer state)
     output: str = ""                                 # final checkpoint ("" -> <work_dir>/<name>/final.pt)
-    schedule: str = "step"                           # "step" (x lr_decay at lr_decay_at) or "cosine" (to lr·lr_decay)
+    schedule: str = field(default="step", metadata=bounded(choices=("step", "cosine")))  # x lr_decay at lr_decay_at, or cosine to lr·lr_decay
     channels_last: bool = False                      # NHWC memory format (2-10 % faster here; with bf16 much more)
     bf16: bool = False                               # bfloat16 autocast of the forward pass (2x faster with AMX)
-    validate_every: int = 0                          # steps between validations (0 = never)
+    validate_every: int = field(default=0, metadata=bounded(lo=0))  # steps between validations (0 = never)
     init: str = ""                                   # start from this checkpoint's weights (path or shipped name,
                                                      # e.g. "v2/binary"; same network and bins); fresh optimizer
 
@@ -78,11 +79,23 @@ class RunConfig:
 
         m = dict(self.model)
         arch = m.pop("arch", "small")
-        return named_config(arch, **m)
+        return named_config(arch, source=f"{self.source or 'config'} [model]", **m)
+
+
+@dataclass(frozen=True)
+class RunFile:
+    """The top level of a training config file (the schema :func:`load_run_config` checks)."""
+
+    name: str = field(default="", metadata=bounded(nonempty=True))
+    model: dict = field(default_factory=dict)
+    data: dict = field(default_factory=dict)
+    train: dict = field(default_factory=dict)
 
 
 def load_run_config(path: str | os.PathLike) -> RunConfig:
-    """Read a TOML or JSON training config: tables [model] (arch + ModelConfig overrides), [data], [train]."""
+    """Read a TOML or JSON training config: tables [model] (arch + ModelConfig overrides), [data], [train];
+    every key is checked against its declared type and range (:mod:`mono_map.schema`), naming file,
+    section and key."""
     path = Path(path)
     if not path.is_file():
         raise MonoMapError(f"{path}: config file not found")
@@ -94,21 +107,14 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
 
             raw = tomllib.loads(path.read_text())
     except Exception as exc:  # noqa: BLE001
-        raise MonoMapError(f"{path}: cannot parse config ({exc})") from None
-    unknown = set(raw) - {"name", "model", "data", "train"}
-    if unknown:
-        raise MonoMapError(f"{path}: unknown sections {sorted(unknown)}")
-
-    def make(cls, d, section):
-        names = set(cls.__dataclass_fields__)
-        bad = set(d) - names
-        if bad:
-            raise MonoMapError(f"{path}: unknown keys in [{section}]: {sorted(bad)}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
-
-    cfg = RunConfig(name=str(raw.get("name", path.stem)), model=dict(raw.get("model", {})),
-                    data=make(DataConfig, raw.get("data", {}), "data"),
-                    train=make(TrainConfig, raw.get("train", {}), "train"), source=str(path))
+        raise MonoMapError(f"{path}: cannot parse config ({' '.join(str(exc).split())})") from None
+    top = check_fields(RunFile, raw, str(path))
+    data = check_fields(DataConfig, top.get("data", {}), f"{path} [data]")
+    train = check_fields(TrainConfig, top.get("train", {}), f"{path} [train]")
+    cfg = RunConfig(name=top.get("name", path.stem), model=dict(top.get("model", {})),
+                    data=DataConfig(**data), train=TrainConfig(**train), source=str(path))
+    if "/" in cfg.name or cfg.name.startswith("."):
+        raise MonoMapError(f"{path}: name: {cfg.name!r} must be a plain folder name (no '/', not starting with '.')")
     validate_run_config(cfg)
     return cfg
 
@@ -167,8 +173,15 @@ def build_cache(cfg: RunConfig, model_cfg) -> tuple[np.ndarray, np.ndarray, Path
         jobs += [(seq, i) for i in range(0, n, d.frame_step)]
     if not jobs:
         raise MonoMapError(f"{cfg.source}: no training frames selected")
+    from mono_map.data.fingerprint import sequence_fingerprint
+
+    by_seq: dict = {}
+    for s, i in jobs:
+        by_seq.setdefault(s.name, (s, []))[1].append(i)
+    parts = ("calibration", "images") + (("scans",) if d.target == "lidar" else ("depth",))
+    contents = {name: sequence_fingerprint(s, idx, parts) for name, (s, idx) in by_seq.items()}
     key = json.dumps({"root": str(root.resolve()), "jobs": [(s.name, i) for s, i in jobs], "target": d.target,
-                      "size": [model_cfg.input_height, model_cfg.input_width]}, sort_keys=True)
+                      "size": [model_cfg.input_height, model_cfg.input_width], "data": contents}, sort_keys=True)
     tag = hashlib.sha1(key.encode()).hexdigest()[:10]
     cache_dir = Path(d.cache_dir)
     img_path, dep_path = cache_dir / f"depth_train_{tag}_images.npy", cache_dir / f"depth_train_{tag}_depths.npy"
@@ -457,8 +470,7 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
     t0, c0 = time.time(), time.process_time()
     losses: list[float] = []
     meta = {}
-    work.mkdir(parents=True, exist_ok=True)
-    curve_path = work / "curve.jsonl"
+    curve_path = work / "curve.jsonl"  # work/ is made by the first file written into it (none if a run fails first)
     best = _best_so_far(curve_path)
     steps = range(start, t.steps)
     it = progress(steps, total=len(steps), desc=f"train {cfg.name}", unit="step") if rank == 0 else steps
@@ -499,6 +511,7 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
             v = validator(model)
             v.update(step=done, cpu_hours=round(cpu / 3600, 6), wall_hours=round((wall_before + time.time() - t0) / 3600, 6),
                      train_frames=n_frames, loss=float(np.mean(losses[-t.log_every:])))
+            work.mkdir(parents=True, exist_ok=True)
             with open(curve_path, "a") as fh:
                 fh.write(json.dumps(v) + "\n")
             log(f"[{cfg.name}] validation at step {done}: AbsRel {v['abs_rel']:.3f} d1 {v['delta1']:.3f} "

@@ -112,8 +112,16 @@ def read_marker(seq_dir: Path, partial: bool = False) -> dict | None:
     if not p.is_file():
         return None
     try:
-        info = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError, OSError):
+        text = p.read_text()
+    except OSError as exc:
+        if partial:
+            return {}
+        # unreadable is not malformed: re-rendering (synth --force) would not be the fix
+        raise MonoMapError(f"{p}: cannot read the synthetic-sequence marker ({exc.strerror}); "
+                           "check its permissions") from None
+    try:
+        info = json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError):
         info = None
     if partial:
         return info if isinstance(info, dict) else {}
