@@ -75,7 +75,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
     from mono_map.progress import progress
 
     bins = predictor.bins
-    per = {"log": [], "linear": [], "argmax": []}
+    per = {"log": [], "linear": [], "argmax": [], "median_scaled": []}
     pooled = {k: [] for k in ("gt", "log", "linear", "argmax", "entropy", "std_log", "modes", "top_bins")}
     times = []
     names = []
@@ -122,6 +122,9 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         for key, idx in (("log", 0), ("linear", 1), ("argmax", 2)):
             per[key].append(image_errors(gt, maps[idx], cap, garg_crop=garg_crop))
             pooled[key].append(clip(maps[idx][m]))
+        # per-frame median scaling (monodepth2's practice for scale-less models): what remains is structure
+        scale = float(np.median(gt[m]) / np.median(maps[0][m])) if m.any() else 1.0
+        per["median_scaled"].append(image_errors(gt, maps[0] * scale, cap, garg_crop=garg_crop))
         pooled["gt"].append(gt[m].astype(np.float64))
         pooled["entropy"].append(maps[3][m])
         pooled["std_log"].append(maps[4][m])
@@ -142,6 +145,8 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         "per_frame": {n: {k: float(v) for k, v in e.items()} for n, e in zip(names, per["log"])},
         "metrics_linear": mean_errors(per["linear"]),
         "metrics_argmax": mean_errors(per["argmax"]),
+        "metrics_median_scaled": mean_errors(per["median_scaled"]),   # log expectation × median(gt)/median(pred)
+        "mean_entropy": float(P["entropy"].mean()),                    # nats, at the ground-truth pixels
         "sparsification": spars,
         "auc_std_log": spars_std["auc"],
         # an uncertainty equal at every pixel (l2, berhu, MHL with one hypothesis) ranks nothing: its AUCs are
