@@ -55,6 +55,7 @@ class TrainConfig:
     seed: int = 0
     threads: int = 2
     checkpoint_every: int = 250
+    keep_checkpoints: bool = False                   # also keep <work_dir>/<name>/step<N>.pt (weights only)
     log_every: int = 25
     work_dir: str = "outputs/train"                  # resumable checkpoints (with optimizer state)
     output: str = ""                                 # final checkpoint ("" -> <work_dir>/<name>/final.pt)
@@ -560,6 +561,8 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
         if rank == 0 and (done % t.checkpoint_every == 0 or done == t.steps):
             meta = _metadata(cfg, done, wall_before + time.time() - t0, losses, world, n_frames, cpu)
             save_checkpoint(last, model, meta, optimizer_state=opt.state_dict())
+            if t.keep_checkpoints:
+                save_checkpoint(work / f"step{done}.pt", model, meta)
     if world > 1:
         tdist.barrier()
     meta = _metadata(cfg, t.steps, wall_before + time.time() - t0, losses, world, n_frames,
