@@ -272,7 +272,7 @@ class TrainsetSampler:
         self.refresh()
         if not self.towns:
             raise MonoMapError(f"{data.trainset}: no training towns in the cache (render them with "
-                               "tools/render_trainset.py)")
+                               "mono-map render-trainset)")
 
     def refresh(self) -> int:
         """Re-scan the cache: towns created and frames finished since the last call join the pool."""
