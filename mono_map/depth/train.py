@@ -519,7 +519,7 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
             g["lr"] = lr
         rng = np.random.default_rng([t.seed, rank, step])
         if sampler is not None:
-            if step % 500 == 0:
+            if step % 100 == 0:          # frames rendered meanwhile join the pool (a complete cache: no change)
                 n_frames = sampler.refresh()
             x, y = sampler.batch(t.batch_size, t.crop, rng, aug)
         else:
