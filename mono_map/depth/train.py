@@ -2,7 +2,8 @@
 
 Pipeline: a one-off cache of training frames (images resized to the model's input scale and
 LiDAR depth targets min-pooled to it, stored as .npy under data/cache/) -> random crops with the
-paper's augmentations (gamma, brightness, colour shift; Godard et al.) and horizontal flips ->
+paper's augmentations (gamma, brightness, colour shift; Godard et al.) or a camera's (depth/augment.py),
+optional scale with the focal length kept, and horizontal flips ->
 Adam with step decay -> checkpoints (resumable) -> a shipped checkpoint without optimizer state.
 Multi-process: launched by ``torchrun`` (env RANK/WORLD_SIZE) or ``torch.multiprocessing``; gloo on
 CPU, nccl on GPU, DistributedDataParallel; rank 0 writes checkpoints.
@@ -55,6 +56,7 @@ class TrainConfig:
     seed: int = field(default=0, metadata=bounded(lo=0))
     threads: int = field(default=2, metadata=bounded(lo=1, hi=1024))
     checkpoint_every: int = field(default=250, metadata=bounded(lo=1))
+    keep_checkpoints: bool = False                   # also keep <work_dir>/<name>/step<N>.pt (weights only)
     log_every: int = field(default=25, metadata=bounded(lo=1))
     work_dir: str = field(default="outputs/train", metadata=bounded(nonempty=True))  # resumable checkpoints (with optimizer state)
     output: str = ""                                 # final checkpoint ("" -> <work_dir>/<name>/final.pt)
@@ -64,6 +66,11 @@ class TrainConfig:
     validate_every: int = field(default=0, metadata=bounded(lo=0))  # steps between validations (0 = never)
     init: str = ""                                   # start from this checkpoint's weights (path or shipped name,
                                                      # e.g. "v2/binary"; same network and bins); fresh optimizer
+    photometric: str = field(default="godard", metadata=bounded(choices=("godard", "camera")))  # colour augmentation (depth/augment.py): "godard" (the paper's,
+                                                     # half the crops) or "camera" (nine camera families)
+    camera_families: tuple = ()                      # "camera": only these families (empty = all nine)
+    scale: tuple = (1.0, 1.0)                        # enlarge each frame by s ~ U(lo, hi) >= 1 before the crop,
+                                                     # depth targets / s (focal length kept; depth/augment.py)
 
 
 @dataclass(frozen=True)
@@ -132,7 +139,65 @@ def validate_run_config(cfg: RunConfig) -> None:
         raise MonoMapError(f"{src}: the validation town {cfg.data.validation_town} must not be a training town")
     if cfg.train.steps < 1 or cfg.train.batch_size < 1:
         raise MonoMapError(f"{src}: train.steps and train.batch_size must be >= 1")
+    validate_augmentation(cfg.train, src)
     cfg.model_config()  # validates architecture / head
+
+
+def validate_augmentation(t: TrainConfig, src: str = "config") -> None:
+    """train.photometric, train.camera_families and train.scale: one MonoMapError naming the key."""
+    from mono_map.depth.augment import FAMILIES, POLICIES
+
+    if t.photometric not in POLICIES:
+        raise MonoMapError(f"{src}: train.photometric must be one of {', '.join(POLICIES)}, got {t.photometric!r}")
+    bad = [f for f in t.camera_families if f not in FAMILIES]
+    if bad:
+        raise MonoMapError(f"{src}: train.camera_families: unknown {bad} (known: {', '.join(FAMILIES)})")
+    if t.camera_families and t.photometric != "camera":
+        raise MonoMapError(f"{src}: train.camera_families needs train.photometric = \"camera\"")
+    sc = t.scale
+    if (len(sc) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in sc)
+            or not 1.0 <= sc[0] <= sc[1] <= 2.0):
+        raise MonoMapError(f"{src}: train.scale must be [lo, hi] with 1 <= lo <= hi <= 2, got {list(sc)}")
+
+
+@dataclass(frozen=True)
+class Augmentation:
+    """What a batch does to its crops (built once from a TrainConfig by :func:`augmentation`)."""
+    colour: bool = True                # photometric augmentation at all (train.augment)
+    policy: str = "godard"
+    camera: object = None              # augment.CameraAugment for policy "camera"
+    scale: tuple = (1.0, 1.0)
+
+
+def augmentation(t: TrainConfig) -> Augmentation:
+    from mono_map.depth.augment import CameraAugment
+
+    return Augmentation(colour=t.augment, policy=t.photometric, camera=CameraAugment().only(tuple(t.camera_families)),
+                        scale=tuple(float(v) for v in t.scale))
+
+
+def augment_crop(img: np.ndarray, dep: np.ndarray, ch: int, cw: int, rng: np.random.Generator, aug: Augmentation):
+    """One training crop of a frame (img (H,W,3) uint8, dep (H,W) metres): scale/crop, colour, 50 % flip ->
+    (float32 image in [0,1], float32 depths). With the default Augmentation the random draws are exactly
+    those of the training before depth/augment.py (same crops, same colours, same flips)."""
+    from mono_map.depth.augment import photometric, scale_crop
+
+    H, W = dep.shape
+    if aug.scale[1] > 1.0:
+        s = float(rng.uniform(*aug.scale)) if aug.scale[1] > aug.scale[0] else aug.scale[0]
+        Hs, Ws = int(round(H * s)), int(round(W * s))
+        top, left = int(rng.integers(Hs - ch + 1)), int(rng.integers(Ws - cw + 1))
+        img, dep = scale_crop(np.asarray(img), np.asarray(dep, np.float32), s, top, left, ch, cw)
+    else:
+        top, left = int(rng.integers(H - ch + 1)), int(rng.integers(W - cw + 1))
+        img, dep = img[top:top + ch, left:left + cw], dep[top:top + ch, left:left + cw]
+    img = np.asarray(img, dtype=np.float32) / 255.0
+    dep = np.asarray(dep, dtype=np.float32)
+    if aug.colour:
+        img = photometric(img, rng, aug.policy, aug.camera)
+    if rng.random() < 0.5:
+        img, dep = img[:, ::-1], dep[:, ::-1]
+    return img, dep
 
 
 # ------------------------------------------------------------------ data cache
@@ -220,7 +285,7 @@ class TrainsetSampler:
         self.refresh()
         if not self.towns:
             raise MonoMapError(f"{data.trainset}: no training towns in the cache (render them with "
-                               "tools/render_trainset.py)")
+                               "mono-map render-trainset)")
 
     def refresh(self) -> int:
         """Re-scan the cache: towns created and frames finished since the last call join the pool."""
@@ -242,20 +307,17 @@ class TrainsetSampler:
         t, f = self.index[k]
         return frame_target(t, int(f), self.data.target, self.data.sky_stride)
 
-    def batch(self, batch: int, crop: tuple, rng: np.random.Generator, augment: bool):
+    def batch(self, batch: int, crop: tuple, rng: np.random.Generator, augment: "bool | Augmentation"):
+        """(B,3,h,w) float32 crops in [0,1], (B,h,w) targets; ``augment``: an Augmentation, or a bool for
+        the default one with (True) or without (False) colour augmentation."""
+        aug = augment if isinstance(augment, Augmentation) else Augmentation(colour=bool(augment))
         H, W = self.towns[0].meta["height"], self.towns[0].meta["width"]
         ch, cw = min(crop[0], H), min(crop[1], W)
         xs = np.empty((batch, 3, ch, cw), np.float32)
         ys = np.empty((batch, ch, cw), np.float32)
         for b in range(batch):
             img, dep = self.frame(int(rng.integers(len(self.index))))
-            top, left = int(rng.integers(H - ch + 1)), int(rng.integers(W - cw + 1))
-            img = img[top:top + ch, left:left + cw].astype(np.float32) / 255.0
-            dep = dep[top:top + ch, left:left + cw]
-            if augment and rng.random() < 0.5:
-                img = augment_colour(img, rng)
-            if rng.random() < 0.5:
-                img, dep = img[:, ::-1], dep[:, ::-1]
+            img, dep = augment_crop(img, dep, ch, cw, rng, aug)
             if self.data.max_targets:
                 dep = subsample_targets(dep, self.data.max_targets, rng)
             xs[b] = img.transpose(2, 0, 1)
@@ -298,30 +360,17 @@ def subsample_targets(dep: np.ndarray, n: int, rng: np.random.Generator) -> np.n
 
 
 # ------------------------------------------------------------------ batches
-def augment_colour(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Godard et al.'s augmentation on an (h,w,3) float image in [0,1]: gamma 0.8-1.2,
-    brightness 0.5-2.0, per-channel colour shift 0.8-1.2, clipped to [0,1]."""
-    img = img ** rng.uniform(0.8, 1.2)
-    img = img * rng.uniform(0.5, 2.0)
-    img = img * rng.uniform(0.8, 1.2, size=3).astype(np.float32)
-    return np.clip(img, 0.0, 1.0)
-
-
-def sample_batch(images, depths, batch: int, crop: tuple, rng: np.random.Generator, augment: bool):
-    """Random crops (+ 50 % colour augmentation, 50 % horizontal flip) -> (B,3,h,w) float32, (B,h,w) metres."""
+def sample_batch(images, depths, batch: int, crop: tuple, rng: np.random.Generator, augment: "bool | Augmentation"):
+    """Random crops (colour augmentation, 50 % horizontal flip; see augment_crop) -> (B,3,h,w) float32,
+    (B,h,w) metres."""
+    aug = augment if isinstance(augment, Augmentation) else Augmentation(colour=bool(augment))
     n, H, W = depths.shape
     ch, cw = min(crop[0], H), min(crop[1], W)
     xs = np.empty((batch, 3, ch, cw), np.float32)
     ys = np.empty((batch, ch, cw), np.float32)
     for b in range(batch):
         i = int(rng.integers(n))
-        top, left = int(rng.integers(H - ch + 1)), int(rng.integers(W - cw + 1))
-        img = np.asarray(images[i, top:top + ch, left:left + cw], dtype=np.float32) / 255.0
-        dep = np.asarray(depths[i, top:top + ch, left:left + cw], dtype=np.float32)
-        if augment and rng.random() < 0.5:
-            img = augment_colour(img, rng)
-        if rng.random() < 0.5:
-            img, dep = img[:, ::-1], dep[:, ::-1]
+        img, dep = augment_crop(images[i], depths[i], ch, cw, rng, aug)
         xs[b] = img.transpose(2, 0, 1)
         ys[b] = dep
     return xs, ys
@@ -467,6 +516,7 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
         model_ddp = model
     model.train()
     decay_step = int(math.ceil(t.lr_decay_at * t.steps))
+    aug = augmentation(t)
     t0, c0 = time.time(), time.process_time()
     losses: list[float] = []
     meta = {}
@@ -481,11 +531,11 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
             g["lr"] = lr
         rng = np.random.default_rng([t.seed, rank, step])
         if sampler is not None:
-            if step % 500 == 0:
+            if step % 100 == 0:          # frames rendered meanwhile join the pool (a complete cache: no change)
                 n_frames = sampler.refresh()
-            x, y = sampler.batch(t.batch_size, t.crop, rng, t.augment)
+            x, y = sampler.batch(t.batch_size, t.crop, rng, aug)
         else:
-            x, y = sample_batch(images, depths, t.batch_size, t.crop, rng, t.augment)
+            x, y = sample_batch(images, depths, t.batch_size, t.crop, rng, aug)
         x, y = torch.from_numpy(x).to(device), torch.from_numpy(y).to(device)
         if t.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
@@ -524,6 +574,8 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
         if rank == 0 and (done % t.checkpoint_every == 0 or done == t.steps):
             meta = _metadata(cfg, done, wall_before + time.time() - t0, losses, world, n_frames, cpu)
             save_checkpoint(last, model, meta, optimizer_state=opt.state_dict())
+            if t.keep_checkpoints:
+                save_checkpoint(work / f"step{done}.pt", model, meta)
     if world > 1:
         tdist.barrier()
     meta = _metadata(cfg, t.steps, wall_before + time.time() - t0, losses, world, n_frames,
