@@ -68,6 +68,12 @@ def main(argv: list[str] | None = None) -> int:
     else:
         previous = None
     try:
+        from mono_map.schema import check_env
+
+        check_env()  # MONO_MAP_* variables: typed and in range before any command runs
+        from mono_map.io import sweep_registered_temps
+
+        sweep_registered_temps()  # what killed runs left, wherever they wrote
         result = args.func(args)
     except MonoMapError as exc:
         return _fail(close_bars, str(exc), 2)
@@ -91,7 +97,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _fail(close_bars, message: str, code: int) -> int:
+    from mono_map.io import user_path
+
     close_bars()
+    message = user_path(message)  # the outputs the user named, never a temporary or staging path
     print(f"mono-map: error: {' '.join(message.split())}", file=sys.stderr)  # one line, whatever the message
     return code
 

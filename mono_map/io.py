@@ -29,13 +29,90 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         yield tmp_path
 
 
-def temp_path(path: str | os.PathLike, suffix: str | None = None) -> Path:
-    """A new empty temporary file beside ``path``, unique to this process and call (mkstemp)."""
+# a file name holds at most 255 bytes: the temporary's stem is cut so that any legal target name fits
+_NAME_MAX = 255
+_TEMP_OVERHEAD = 1 + 1 + 10 + 1 + 8 + 4 + 3  # "." stem "." pid "." random ".tmp" kind, bytes
+
+
+def temp_path(path: str | os.PathLike, suffix: str | None = None, kind: str = "") -> Path:
+    """A new empty temporary file beside ``path``, unique to this process and call (mkstemp): named
+    ``.<stem>.<pid>.<random>.tmp<kind><suffix>`` (the stem shortened where a long name would not fit)."""
     path = Path(path)
     suffix = path.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.{os.getpid()}.", suffix=f".tmp{suffix}", dir=path.parent)
+    room = _NAME_MAX - _TEMP_OVERHEAD - len(kind.encode()) - len(suffix.encode())
+    stem = path.stem.encode()[:max(8, room)].decode("utf-8", "ignore")
+    register_temp_dir(path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{stem}.{os.getpid()}.", suffix=f".tmp{kind}{suffix}", dir=path.parent)
     os.close(fd)
     return Path(tmp)
+
+
+# Folders temporary files were written to, so that the next run sweeps what a killed one left wherever
+# it was (beside --rrd, --json, ... too): one absolute path a line, appended once per folder and process.
+_REGISTERED: set[str] = set()
+_REGISTRY_COMPACT = 200  # lines: rewritten (deduplicated, swept folders dropped) beyond this
+
+
+def temp_registry() -> Path:
+    """The list of folders temporary files went to: ``$XDG_CACHE_HOME/mono-map/temp-dirs.txt``
+    (``~/.cache`` by default)."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or "~/.cache").expanduser() / "mono-map" / "temp-dirs.txt"
+
+
+def register_temp_dir(folder: Path) -> None:
+    """Note ``folder`` in :func:`temp_registry` (once per process); a registry that cannot be written
+    only means a killed run's temporaries there wait for the next write into that folder."""
+    key = str(Path(folder).resolve())
+    if key in _REGISTERED:
+        return
+    _REGISTERED.add(key)
+    try:
+        reg = temp_registry()
+        reg.parent.mkdir(parents=True, exist_ok=True)
+        with open(reg, "a") as fh:  # O_APPEND: concurrent short lines do not interleave
+            fh.write(key + "\n")
+    except OSError:
+        pass
+
+
+def sweep_registered_temps() -> list[Path]:
+    """Remove the temporaries of dead runs in every folder of :func:`temp_registry` (run by the CLI
+    before a command); returns what was removed."""
+    reg = temp_registry()
+    try:
+        lines = reg.read_text().splitlines()
+    except (OSError, UnicodeDecodeError):
+        return []
+    folders = list(dict.fromkeys(ln for ln in lines if ln.startswith("/")))
+    removed = []
+    for d in folders:
+        removed += clean_stale_temps(d)
+    _REGISTERED.update(folders)
+    if len(lines) > _REGISTRY_COMPACT:  # keep the folders that still hold (live runs') temporaries
+        keep = [d for d in folders if Path(d).is_dir() and any(Path(d).glob(".*.tmp*"))]
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=".temp-dirs.", dir=reg.parent)
+            with os.fdopen(fd, "w") as fh:
+                fh.write("".join(d + "\n" for d in keep))
+            os.replace(tmp, reg)
+        except OSError:
+            pass
+    return removed
+
+
+def check_output_targets(targets: list[Path]) -> None:
+    """MonoMapError naming the first target that is a folder (it could never be replaced by a file):
+    checked before any work, so the earlier files of a set are never touched."""
+    from mono_map.errors import MonoMapError
+
+    for t in targets:
+        if t.is_dir():
+            raise MonoMapError(f"{t}: a folder is in the way of this output (remove or rename it)")
+        parent = t.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if parent.exists() and not parent.is_dir():
+            raise MonoMapError(f"{t}: cannot create it ({parent} is a file, not a folder)")
 
 
 @contextlib.contextmanager
@@ -47,6 +124,9 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
     ignores; if a rename fails, the targets already renamed are removed again.
     """
     targets = [Path(p) for p in paths]
+    check_output_targets(targets)
+    for d in sorted({t.parent for t in targets}):
+        clean_stale_temps(d)  # what killed runs left here, wherever they wrote
     temps: list[Path] = []
     created: list[Path] = []  # folders made here, removed again (if empty) when nothing is published
     published = False
@@ -55,24 +135,43 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
             created += _make_dirs(target.parent)
             temps.append(temp_path(target, None if suffixes is None else suffixes[i]))
         yield temps
-        done: list[Path] = []
-        try:
-            with _dir_locks(sorted({t.parent for t in targets})):  # another writer's set never interleaves
-                for tmp, target in zip(temps, targets):
-                    if tmp.exists():  # mkstemp makes 0600; give results the mode a plain open() would
-                        os.chmod(tmp, 0o666 & ~_UMASK)
-                    os.replace(tmp, target)
-                    done.append(target)
-            published = True
-        except BaseException:
-            for target in done:
-                target.unlink(missing_ok=True)
-            raise
+        with _dir_locks(sorted({t.parent for t in targets})):  # another writer's set never interleaves
+            publish_renames(list(zip(temps, targets)))
+        published = True
     finally:
         for tmp in temps:
             tmp.unlink(missing_ok=True)
         if not published:
             _remove_empty_dirs(created)
+
+
+def publish_renames(pairs: list[tuple[Path, Path]]) -> None:
+    """Rename each (temporary, target) pair in order; if one rename fails, every target renamed so far
+    gets its previous file back (kept as a hard-link backup until the set is complete) or is removed
+    if it had none: a failed publication leaves what was there before."""
+    backups: list[tuple[Path, Path | None]] = []
+    try:
+        for tmp, target in pairs:
+            backup = None
+            if target.is_file():
+                backup = temp_path(target, kind="bak")
+                backup.unlink()
+                os.link(target, backup)
+            backups.append((target, backup))
+            if tmp.exists():  # mkstemp makes 0600; give results the mode a plain open() would
+                os.chmod(tmp, 0o666 & ~_UMASK)
+            os.replace(tmp, target)
+    except BaseException:
+        for target, backup in reversed(backups):
+            if backup is not None:
+                os.replace(backup, target)
+            else:
+                target.unlink(missing_ok=True)
+        raise
+    finally:
+        for _, backup in backups:
+            if backup is not None:
+                backup.unlink(missing_ok=True)
 
 
 def _remove_empty_dirs(created: list[Path]) -> None:
@@ -86,26 +185,46 @@ def _remove_empty_dirs(created: list[Path]) -> None:
 
 @contextlib.contextmanager
 def staged_dir(out: str | os.PathLike) -> Iterator[Path]:
-    """Yield a hidden staging folder inside ``out`` for many output files; on success move each file
-    to the same relative path under ``out``, on failure remove them all (``out`` too, if made here)."""
+    """Yield a hidden staging folder inside ``out`` for many output files; on success publish them all
+    at the same relative paths under ``out`` as one set (:func:`publish_renames`: a rename failing puts
+    the earlier files back), on failure remove them all (``out`` too, if made here). Stale staging
+    folders and temporary files of dead runs in ``out`` are removed first."""
     import shutil
 
+    from mono_map.errors import MonoMapError
+
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise MonoMapError(f"{out} is a file, not a folder")
     created = _make_dirs(out)
-    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}.", suffix=".tmp", dir=out))
+    clean_stale_temps(out)
+    register_temp_dir(out)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name[:64]}.{os.getpid()}.", suffix=".tmpstage", dir=out))
     published = False
     try:
         yield stage
+        files = sorted(p for p in stage.rglob("*") if p.is_file() and not _TEMP_NAME.search(p.name))
+        check_output_targets([out / f.relative_to(stage) for f in files])
         with _dir_locks([out]):
-            for f in sorted(p for p in stage.rglob("*") if p.is_file()):
-                target = out / f.relative_to(stage)
-                target.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(f, target)
+            for f in files:
+                (out / f.relative_to(stage)).parent.mkdir(parents=True, exist_ok=True)
+            publish_renames([(f, out / f.relative_to(stage)) for f in files])
         published = True
     finally:
         shutil.rmtree(stage, ignore_errors=True)
         if not published:
             _remove_empty_dirs(created)
+
+
+_STAGE_PART = re.compile(r"/\.[^/]*\.\d+\.[A-Za-z0-9_]{8}\.tmpstage(?=/)")
+_TEMP_PART = re.compile(r"(?<![^/\s'\"])\.([^/\s]*?)\.\d+\.[A-Za-z0-9_]{8}\.tmp(?:bak)?([^/\s]*)")
+
+
+def user_path(text: str) -> str:
+    """``text`` with every staging folder and temporary file name (see the module doc) replaced by the
+    output it stands for: what users see names their files, never mono-map's hidden ones."""
+    text = _STAGE_PART.sub("", text)
+    return _TEMP_PART.sub(lambda m: m.group(1) + m.group(2), text)
 
 
 @contextlib.contextmanager
@@ -235,6 +354,7 @@ def check_output_file(path: str | os.PathLike, option: str, suffix: str | None =
         raise MonoMapError(f"{option}: {parent} is a file, not a directory")
     if parent.exists():
         check_writable_dir(parent, option)
+        clean_stale_temps(parent)
     if min_free and free_bytes(parent) < min_free:
         raise MonoMapError(f"{option}: {path}: only {free_bytes(parent) / 2**20:.1f} MB free there, "
                            f"need at least {min_free / 2**20:.0f} MB")

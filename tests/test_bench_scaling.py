@@ -1,4 +1,4 @@
-"""tools/bench_scaling.py: the growth exponents and ratios it reports, its report files, its bad input."""
+"""benchmarks/bench_scaling.py: the growth exponents and ratios it reports, its report files, its bad input."""
 
 import json
 import subprocess
@@ -6,10 +6,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from tool_loader import load_tool
+from tool_loader import load_tool, script_path
 
 REPO = Path(__file__).resolve().parents[1]
-TOOL = REPO / "tools" / "bench_scaling.py"
+TOOL = script_path("bench_scaling")
 
 
 def _tool():

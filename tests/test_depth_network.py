@@ -46,7 +46,7 @@ def test_unknown_architecture_or_head():
         named_config("resnet-9000")
     with pytest.raises(MonoMapError, match="head"):
         named_config("small", head="mystery")
-    with pytest.raises(MonoMapError, match="multiples of 32"):
+    with pytest.raises(MonoMapError, match="input_height: must be a multiple of 32"):
         named_config("small", input_height=100)
 
 

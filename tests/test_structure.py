@@ -4,7 +4,11 @@
   importing a later layer of data -> depth -> mapping -> eval -> viz -> commands;
 * no private name (``_x``, or a ``_x`` module) imported from another module, nor reached as an
   attribute of an imported mono_map module — in mono_map/ (any module, third-party included) and in
-  tools/ and tests/ (mono_map modules).
+  tools/, benchmarks/ and tests/ (mono_map modules);
+* no C source in Python strings in mono_map/ (the kernels are mono_map/csrc/*.c);
+* no ``sys.path`` edits in tools/ and benchmarks/ (they import the installed package);
+* the package data (pyproject.toml) ships every data file of the package but the comparison
+  heads' checkpoints: of mono_map/checkpoints/, only the default model.
 
 Violations that other work is removing are listed below with their owner; the lists may only
 shrink: a new violation fails, and so does a listed one that is gone (delete its line then).
@@ -13,7 +17,11 @@ shrink: a new violation fails, and so does a listed one that is gone (delete its
 from __future__ import annotations
 
 import ast
+import fnmatch
+import re
+import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -126,8 +134,7 @@ def cycles(graph: dict[str, set[str]]) -> set[frozenset[str]]:
 def private_imports() -> set[tuple[str, str]]:
     """(file, stripped source line) of every private import / private attribute of an imported mono_map module."""
     modules = package_modules()
-    files = sorted((REPO / PACKAGE).rglob("*.py")) + sorted((REPO / "tools").rglob("*.py")) + sorted(
-        (REPO / "tests").rglob("*.py"))
+    files = [f for d in (PACKAGE, "tools", "benchmarks", "tests") for f in sorted((REPO / d).rglob("*.py"))]
     found = set()
     for path in files:
         ours = path.is_relative_to(REPO / PACKAGE)
@@ -201,3 +208,89 @@ def test_the_checks_see_function_level_imports_and_attributes(tmp_path, monkeypa
                                  ("mono_map/sub/c.py", "from mono_map.sub.b import _x, g")}
     assert cycles({"a": {"b"}, "b": set()}) == set()
     assert is_private("_spread_bits") and not is_private("__future__") and not is_private("spread")
+
+
+# A C construct in a string: a preprocessor line, or a function definition "type name(args) {".
+C_IN_STRING = re.compile(r"^[ \t]*#[ \t]*(include|define|ifn?def|pragma)\b"
+                         r"|\b(void|int|float|double|char|int\d+_t|uint\d+_t|size_t)[ \t*]+\w+[ \t]*\([^;{}]*\)[ \t\n]*\{",
+                         re.MULTILINE)
+
+
+def c_in_strings(paths) -> set[tuple[str, int]]:
+    """(file, line) of every string constant (docstrings, f-string parts included) that holds C source."""
+    found = set()
+    for path in paths:
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and C_IN_STRING.search(node.value):
+                found.add((path.relative_to(REPO).as_posix(), node.lineno))
+    return found
+
+
+def sys_path_edits(paths) -> set[tuple[str, int]]:
+    """(file, line) of every change to ``sys.path`` (a call of one of its methods, an assignment to it or
+    an augmented one) and every ``site.addsitedir``."""
+    found = set()
+    for path in paths:
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            target = None
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+                target = node.func.value if node.func.attr != "addsitedir" else node.func
+            elif isinstance(node, (ast.Assign, ast.AugAssign)):
+                target = node.targets[0] if isinstance(node, ast.Assign) else node.target
+                target = target.value if isinstance(target, ast.Subscript) else target
+            if target is not None and ast.unparse(target) in ("sys.path", "site.addsitedir"):
+                found.add((path.relative_to(REPO).as_posix(), node.lineno))
+    return found
+
+
+def test_no_c_source_in_python_strings():
+    """The kernels are real C files (mono_map/csrc/), built at install; none is hidden in a Python string."""
+    found = c_in_strings(sorted((REPO / PACKAGE).rglob("*.py")))
+    assert not found, "C source in Python strings (move it to mono_map/csrc/): " + "; ".join(
+        f"{f}:{n}" for f, n in sorted(found))
+    assert sorted(p.name for p in (REPO / PACKAGE / "csrc").glob("*.c")), "no C kernels in mono_map/csrc/"
+
+
+def test_tools_and_benchmarks_import_the_installed_package():
+    """No script in tools/ or benchmarks/ edits sys.path to find mono_map (pip install -e . provides it)."""
+    paths = [f for d in ("tools", "benchmarks") for f in sorted((REPO / d).rglob("*.py"))]
+    found = sys_path_edits(paths)
+    assert not found, "sys.path edits: " + "; ".join(f"{f}:{n}" for f, n in sorted(found))
+
+
+def package_data_patterns() -> list[str]:
+    """pyproject.toml's package-data globs of the package, relative to mono_map/."""
+    cfg = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert cfg.get("include-package-data") is False, "include-package-data would add files beyond package-data"
+    return cfg["package-data"][PACKAGE]
+
+
+def test_package_data_is_the_default_checkpoint_and_every_other_data_file():
+    """The wheel's data files (pyproject's package-data matched against the package's tracked files):
+    of mono_map/checkpoints/ only the default model; every other non-Python file of the package
+    (kernel sources, KITTI assets, training configs) is shipped; the sdist prunes v1/ and v2/ too."""
+    tracked = subprocess.run(["git", "ls-files", PACKAGE], cwd=REPO, capture_output=True, text=True).stdout.split()
+    data = [f[len(PACKAGE) + 1:] for f in tracked if not f.endswith(".py") and (REPO / f).is_file()]
+    if not data:
+        data = [p.relative_to(REPO / PACKAGE).as_posix() for p in (REPO / PACKAGE).rglob("*")
+                if p.is_file() and p.suffix not in (".py", ".pyc", ".so")]
+    patterns = package_data_patterns()
+    shipped = {f for f in data if any(fnmatch.fnmatchcase(f, pat) and f.count("/") == pat.count("/") for pat in patterns)}
+    checkpoints = {f for f in data if f.startswith("checkpoints/")}
+    assert shipped & checkpoints == {"checkpoints/binary.pt"}
+    assert len(checkpoints) > 1                   # the comparison heads stay in the repository
+    missing = sorted(set(data) - checkpoints - shipped)
+    assert not missing, f"package data files the wheel would leave out: {missing}"
+    manifest = (REPO / "MANIFEST.in").read_text().split("\n")
+    assert "prune mono_map/checkpoints/v1" in manifest and "prune mono_map/checkpoints/v2" in manifest
+
+
+def test_the_source_checks_find_what_they_guard(tmp_path, monkeypatch):
+    """On fake files: C in a string and each form of sys.path edit are found; prose that mentions C is not."""
+    (tmp_path / "k.py").write_text('SRC = r"""\n#include <math.h>\n"""\nF = "int64_t mm_f(const float *x, int n) { return 0; }"\n'
+                                   '"""Docstring: calls mm_f (int64_t), built by ckernel; #include is C\'s."""\n')
+    (tmp_path / "t.py").write_text("import sys, site\nsys.path.insert(0, 'x')\nsys.path += ['y']\nsys.path[:0] = ['z']\n"
+                                   "site.addsitedir('w')\nprint(sys.path)\n")
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    assert c_in_strings([tmp_path / "k.py"]) == {("k.py", 1), ("k.py", 4)}
+    assert sys_path_edits([tmp_path / "t.py"]) == {("t.py", 2), ("t.py", 3), ("t.py", 4), ("t.py", 5)}

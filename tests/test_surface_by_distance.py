@@ -1,14 +1,14 @@
-"""tools/surface_by_distance.py: distances to the path, the per-bin table, bad input in one line."""
+"""tools/archive/surface_by_distance.py: distances to the path, the per-bin table, bad input in one line."""
 
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
-from tool_loader import load_tool
+from tool_loader import load_tool, script_path
 
 REPO = Path(__file__).resolve().parents[1]
-TOOL = REPO / "tools" / "surface_by_distance.py"
+TOOL = script_path("surface_by_distance")
 
 
 def _tool():

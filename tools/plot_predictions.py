@@ -10,14 +10,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from mono_map.data.prepare import prepare_sequence  # noqa: E402
-from mono_map.depth.inference import DepthPredictor  # noqa: E402
-from mono_map.frames import parse_frames  # noqa: E402
-from mono_map.viz.plots import figure  # noqa: E402
+from mono_map.data.prepare import prepare_sequence
+from mono_map.depth.inference import DepthPredictor
+from mono_map.frames import parse_frames
+from mono_map.viz.plots import figure
 
 
 def main(argv=None) -> int:

@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Set up everything mono-map needs on a fresh machine; idempotent and quick when done already.
-#   - Debian packages (when root): libusb-1.0-0 (open3d needs it), octomap-tools (OctoMap's C++ tools)
+#   - Debian packages (when root): libusb-1.0-0 (open3d needs it), octomap-tools (OctoMap's C++ tools), gcc when
+#     there is no C compiler (cc): pip install builds the C kernels of mono_map/csrc/ with it (without one,
+#     mono-map runs its numpy paths: the same results, slower)
 #   - a virtualenv (.venv, or $MONO_MAP_VENV) with torch 2.13.0 and mono-map installed in editable mode
 #     with its test extras. torch comes from whatever index pip is configured with: a machine whose pip
 #     finds a CPU wheel gets that (2.13.0+cpu on the project's machines); from plain PyPI on Linux x86-64
@@ -16,6 +18,7 @@ need_apt=()
 for pkg in libusb-1.0-0 octomap-tools; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
+command -v "${CC:-cc}" >/dev/null 2>&1 || need_apt+=(gcc)
 if [ ${#need_apt[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ]; then
     echo "setup: installing Debian packages: ${need_apt[*]}" >&2
@@ -30,7 +33,7 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$PY" -m venv "$VENV"
 fi
 stamp="$VENV/.mono-map-setup"
-want="$(cat "$REPO/pyproject.toml" | sha256sum | cut -d' ' -f1)"
+want="$(cat "$REPO/pyproject.toml" "$REPO/setup.py" | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   log="$VENV/setup.log"
   echo "setup: installing Python packages into $VENV (first time takes a few minutes; log: $log)" >&2

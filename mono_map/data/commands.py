@@ -1,8 +1,9 @@
-"""Subcommands of the data layer (registered by mono_map.cli): ``mono-map synth``."""
+"""Subcommands of the data layer (registered by mono_map.cli): ``mono-map synth``, ``mono-map render-trainset``."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 
@@ -25,6 +26,16 @@ def register(subparsers) -> None:
     p.add_argument("--drive", default=None,
                    help="with --layout raw: the drive's name (default 2000_01_01_drive_<recipe>_sync)")
     p.set_defaults(func=run_synth)
+
+    p = subparsers.add_parser(
+        "render-trainset", help="render the randomised training towns (and val09) into the training cache",
+        description="Render the validation town val09 and the randomised training towns straight at training "
+                    "resolution (192x634, memory-mapped) into the training cache. Resumable: frames already done "
+                    "are kept; training reads the frames that exist while the rest render.")
+    p.add_argument("--root", default=None, help="cache directory (default $MONO_MAP_TRAINSET or ~/.cache/mono-map/trainset)")
+    p.add_argument("--workers", type=int, default=2, help="parallel render processes, one town each (default 2)")
+    p.add_argument("--towns", type=int, default=0, help="only the first N training towns (default 0 = all)")
+    p.set_defaults(func=run_render_trainset)
 
 
 def run_synth(args: argparse.Namespace) -> int:
@@ -69,4 +80,28 @@ def run_synth(args: argparse.Namespace) -> int:
         seq = KittiSequence(root, recipe.name)
         out = write_raw_drive(seq, root, drive, frames=list(range(n)), force=True)
         print(f"raw drive {drive}: {n} frames in {out} (open it with --seq {drive})", file=sys.stderr)
+    return 0
+
+
+def run_render_trainset(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from mono_map.data.synth.randomize import training_towns, validation_town
+    from mono_map.data.synth.trainset import default_root, render_trainset
+    from mono_map.errors import MonoMapError
+
+    specs = training_towns()
+    if args.workers < 1:
+        raise MonoMapError(f"--workers: must be >= 1, got {args.workers}")
+    if not 0 <= args.towns <= len(specs):
+        raise MonoMapError(f"--towns: must be 0 (all) to {len(specs)}, got {args.towns}")
+    root = Path(args.root).expanduser() if args.root else default_root()
+    if root.exists() and not root.is_dir():
+        raise MonoMapError(f"--root: {root}: not a directory")
+    if root.is_dir() and not os.access(root, os.W_OK):
+        raise MonoMapError(f"--root: {root}: not writable")
+    specs = [validation_town()] + (specs[:args.towns] if args.towns else specs)
+    print(f"rendering {len(specs)} towns ({sum(s.frames for s in specs)} frames) into {root}", file=sys.stderr)
+    out = render_trainset(root, specs, workers=args.workers, log=lambda m: print(m, file=sys.stderr, flush=True))
+    print(f"done: {out['frames_rendered']} frames in {out['seconds'] / 60:.1f} min", file=sys.stderr)
     return 0

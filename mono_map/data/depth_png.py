@@ -38,9 +38,9 @@ def write_depth_png(path: str | os.PathLike, depth_m: np.ndarray) -> None:
 
 def read_depth_png(path: str | os.PathLike) -> np.ndarray:
     """Read a KITTI uint16 depth PNG as metres float32 (H, W); 0 = no value."""
-    import cv2
+    from mono_map.data.png import decode_image
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = decode_image(path)
     if img is None:
         raise MonoMapError(f"{path}: not a readable depth PNG")
     if img.dtype != np.uint16 or img.ndim != 2:

@@ -28,6 +28,7 @@ import numpy as np
 
 from mono_map import geometry
 from mono_map.data import kitti_raw
+from mono_map.data.png import PNG_SIGNATURE, decode_image
 from mono_map.errors import MonoMapError
 from mono_map.paths import data_root
 
@@ -115,6 +116,10 @@ def read_poses_file(path: str | os.PathLike) -> np.ndarray:
     err = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
     if err.max() > 1e-3:
         raise MonoMapError(f"{path}:{int(err.argmax()) + 1}: pose rotation is not orthonormal")
+    det = np.linalg.det(R)
+    if det.min() < 0:
+        raise MonoMapError(f"{path}:{int(det.argmin()) + 1}: pose rotation is a reflection (determinant "
+                           f"{det.min():.3f}), not a rotation")
     return poses
 
 
@@ -152,7 +157,7 @@ def read_image_rgb(path: str | os.PathLike) -> np.ndarray:
     """Read a colour image as H×W×3 uint8 RGB (an alpha channel is dropped; grayscale is refused)."""
     import cv2
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = decode_image(path)
     if img is None:
         raise MonoMapError(f"{path}: unreadable image")
     if img.ndim == 2 or img.shape[2] == 1:
@@ -162,7 +167,7 @@ def read_image_rgb(path: str | os.PathLike) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
 
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
 PNG_GRAY_TYPES = (0, 4)  # IHDR colour types: 0 gray, 2 RGB, 3 palette, 4 gray+alpha, 6 RGBA
 
 
@@ -304,7 +309,12 @@ class KittiSequence:
         if not marker.is_file():
             return None
         try:
-            n = json.loads(marker.read_text())["n_frames"]
+            text = marker.read_text()
+        except OSError as exc:  # unreadable, not malformed: re-rendering would not be the fix
+            raise MonoMapError(f"{marker}: cannot read the synthetic-sequence marker ({exc.strerror}); "
+                               "check its permissions") from None
+        try:
+            n = json.loads(text)["n_frames"]
         except (ValueError, KeyError, TypeError, IndexError, UnicodeDecodeError):
             n = None
         if not isinstance(n, int) or isinstance(n, bool) or n < 1:

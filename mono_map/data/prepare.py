@@ -20,7 +20,8 @@ def check_data_root(root: str | os.PathLike | None) -> Path:
     """The data root (``--data-root`` > ``$MONO_MAP_DATA`` > ./data/kitti), refused if it is not a directory."""
     path = data_root(root)
     if path.exists() and not path.is_dir():
-        raise MonoMapError(f"--data-root: {path} is a file, not a directory")
+        given = "--data-root" if root else ("$MONO_MAP_DATA" if os.environ.get("MONO_MAP_DATA") else "data root")
+        raise MonoMapError(f"{given}: {path} is a file, not a directory")
     return path
 
 

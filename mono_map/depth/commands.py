@@ -62,6 +62,40 @@ def register(subparsers) -> None:
     p.add_argument("--fast", action="store_true", help="distribution statistics at the decoder's stride 4, then up-sampled")
     p.set_defaults(func=run_eval_depth)
 
+    from mono_map.depth.adapt import AdaptConfig
+
+    d = AdaptConfig()
+    p = subparsers.add_parser(
+        "adapt", help="fine-tune the depth model on the sequence being mapped (self-supervised, its own poses)",
+        description="Self-supervised adaptation: neighbouring frames warped into each frame through the predicted "
+                    "depth and the sequence's metric poses (SSIM+L1, per-pixel minimum, auto-masking, smoothness). "
+                    "Writes <out>/<base>-adapted-<seq>-<digest>.pt for --model of predict, eval-depth, build, eval. "
+                    "Resumes from ~/.cache/mono-map/adapt/.")
+    p.add_argument("--seq", required=True, help="sequence name under the data root (e.g. real01)")
+    p.add_argument("--data-root", default=None)
+    p.add_argument("--frames", default=None, help="frames to adapt on: N, A:B[:S], I,J,... or 'all' (default all)")
+    p.add_argument("--model", default=None, help="base checkpoint path or shipped name (default binary)")
+    p.add_argument("--out", default="outputs/adapt", help="folder of the adapted checkpoint (default outputs/adapt)")
+    p.add_argument("--steps", type=int, default=d.steps, help=f"optimisation steps (default {d.steps})")
+    p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr:g})")
+    p.add_argument("--batch-size", type=int, default=d.batch_size, help=f"target frames per step (default {d.batch_size})")
+    p.add_argument("--min-baseline", type=float, default=d.min_baseline,
+                   help=f"metres a source frame must be from the target (default {d.min_baseline:g})")
+    p.add_argument("--max-baseline", type=float, default=d.max_baseline, help=f"... at most (default {d.max_baseline:g})")
+    p.add_argument("--replay", type=float, default=d.replay,
+                   help="weight of supervised replay on --replay-seq, relative to the photometric loss at the start "
+                        f"(default {d.replay:g} = off)")
+    p.add_argument("--replay-seq", default=d.replay_seq, help="synthetic training sequence for replay (e.g. 06)")
+    p.add_argument("--replay-root", default=None, help="data root of --replay-seq (default: --data-root)")
+    p.add_argument("--eval-every", type=int, default=d.eval_every,
+                   help=f"steps between held-out photometric checks (the stopping rule; default {d.eval_every})")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
+                   help="network precision (default: bf16 on CPUs with AMX / AVX-512 BF16, else fp32)")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
+    p.add_argument("--no-resume", action="store_true", help="start again even if a run or checkpoint exists")
+    p.set_defaults(func=run_adapt)
+
 
 EVAL_FRAMES = FrameSelection("0:500:10", stop=500, step=10, up_to=True)  # eval-depth's default
 
@@ -179,9 +213,7 @@ def run_eval_depth(args) -> int:
     from mono_map.eval.depth_evaluation import evaluate_model, markdown_report, object_frames
     from mono_map.viz.plots import plot_hypotheses, plot_sparsification
     from mono_map.depth.inference import DepthPredictor, shipped_names
-    from mono_map.io import write_json_atomic, write_text_atomic
-
-    from mono_map.io import prepare_output_dir
+    from mono_map.io import prepare_output_dir, staged_dir, write_json_atomic, write_text_atomic
 
     selection = parse_frames(args.frames, default=EVAL_FRAMES)
     if args.cap <= 0 or args.cap != args.cap:
@@ -233,12 +265,13 @@ def run_eval_depth(args) -> int:
     results = {h: evaluate_model(p, make(), n, cap=args.cap, garg_crop=args.garg_crop, desc=f"eval {h}")
                for h, p in predictors.items()}
     out = Path(args.out)
-    write_json_atomic(out / f"depth_{where}.json", {"title": title, "args": {k: v for k, v in vars(args).items()
-                                                                              if k != "func"}, "results": results})
     md = markdown_report(results, title)
-    write_text_atomic(out / f"depth_{where}.md", md)
-    plot_sparsification(results, out / f"sparsification_{where}.png")
-    plot_hypotheses(results, out / f"hypotheses_{where}.png")
+    with staged_dir(out) as stage:  # the report, its JSON and both pictures: all published or none
+        write_json_atomic(stage / f"depth_{where}.json", {"title": title, "args": {k: v for k, v in vars(args).items()
+                                                                                    if k != "func"}, "results": results})
+        write_text_atomic(stage / f"depth_{where}.md", md)
+        plot_sparsification(results, stage / f"sparsification_{where}.png")
+        plot_hypotheses(results, stage / f"hypotheses_{where}.png")
     print(md)
     print(f"wrote {out}/depth_{where}.(json|md), sparsification_{where}.png, hypotheses_{where}.png")
     return 0
@@ -298,4 +331,30 @@ def run_split(args, sel, predictors: dict) -> int:
     plot_hypotheses(results["eigen"], out / f"hypotheses_{where}.png")
     print(md)
     print(f"wrote {out}/depth_{where}.(json|md), sparsification_{where}.png, hypotheses_{where}.png")
+    return 0
+
+
+def run_adapt(args) -> int:
+    import torch
+
+    from mono_map.depth.adapt import AdaptConfig, adapt
+    from mono_map.depth.inference import default_precision
+
+    if args.threads < 1:
+        raise MonoMapError(f"--threads: must be >= 1, got {args.threads}")
+    cfg = AdaptConfig(steps=args.steps, lr=args.lr, batch_size=args.batch_size, min_baseline=args.min_baseline,
+                      max_baseline=args.max_baseline, replay=args.replay, replay_seq=args.replay_seq,
+                      eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision())
+    cfg.validate()
+    selection = parse_frames(args.frames) if args.frames is not None else None
+    torch.set_num_threads(args.threads)
+    res = adapt(args.model, args.data_root, args.seq, selection, cfg, out_dir=args.out,
+                resume=not args.no_resume, replay_root=args.replay_root,
+                log=lambda m: print(m, file=sys.stderr))
+    a = res.metadata["adapted"]
+    c = a["curve"]
+    print(f"adapted {Path(a['base']).name} to {a['sequence']} ({len(a['frames'])} frames, {a['targets']} targets, "
+          f"{len(a['heldout'])} held out): held-out photometric error {c[0]['heldout_photometric']:.4f} -> "
+          f"{min(r['heldout_photometric'] for r in c):.4f} (best at step {a['best_step']} of {res.metadata['steps']})")
+    print(f"wrote {res.checkpoint}  (use it with --model {res.checkpoint})")
     return 0

@@ -43,8 +43,11 @@ def default_precision(cpuinfo: str | None = None) -> str:
     machines, full ``predict`` of a 376×1241 frame, one thread: 28 vs 62 ms network time with AMX (Xeon),
     71 vs 133 ms with AVX-512 BF16 (AMD EPYC); depths change by < 1 cm. ``$MONO_MAP_PRECISION`` overrides.
     ``cpuinfo``: the text of /proc/cpuinfo (read when None)."""
-    if os.environ.get("MONO_MAP_PRECISION") in ("fp32", "bf16"):
-        return os.environ["MONO_MAP_PRECISION"]
+    from mono_map.schema import env_value
+
+    chosen = env_value("MONO_MAP_PRECISION")  # checked: anything but fp32/bf16 is refused naming it
+    if chosen is not None:
+        return chosen
     if cpuinfo is None:
         try:
             cpuinfo = Path("/proc/cpuinfo").read_text()
@@ -153,7 +156,9 @@ def load_checkpoint(path: str | os.PathLike, device: str = "cpu") -> tuple[Depth
     for key in ("model_config", "bins", "state_dict"):
         if key not in payload:
             raise MonoMapError(f"{path}: checkpoint lacks '{key}'")
-    cfg = ModelConfig.from_dict(payload["model_config"], source=str(path))
+    if not isinstance(payload.get("training", {}), dict):
+        raise MonoMapError(f"{path}: training: expected a table of metadata, got {payload['training']!r}")
+    cfg = ModelConfig.from_dict(payload["model_config"], source=f"{path} model_config")
     if payload["bins"] != cfg.bins.to_dict():
         raise MonoMapError(f"{path}: stored bins {payload['bins']} disagree with the model config {cfg.bins.to_dict()}")
     if "bin_centres" in payload and not np.allclose(np.asarray(payload["bin_centres"]), cfg.bins.centres, rtol=1e-6):

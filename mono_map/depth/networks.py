@@ -8,7 +8,7 @@ head's score maps to the input resolution (paper Fig. 2).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field
 
 import torch
 import torch.nn as nn
@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from mono_map.depth.bins import DepthBins
 from mono_map.depth.heads import get_head
 from mono_map.errors import MonoMapError
+from mono_map.schema import bounded, check_fields
 
 
 @dataclass(frozen=True)
@@ -24,24 +25,24 @@ class ModelConfig:
     """Architecture + head + bins + inference input size (pixels, H×W, multiples of 32)."""
 
     name: str = "small"
-    head: str = "binary"
-    block: str = "basic"                     # "basic" (ResNet-18/34) or "bottleneck" (ResNet-50)
-    layers: tuple = (1, 1, 1, 1)             # blocks per stage
-    widths: tuple = (32, 64, 96, 128)        # stage widths (bottleneck output = 4× width)
-    stem_width: int = 24
-    spp_levels: tuple = (1, 2, 4)            # pyramid pooling grid sizes on the stride-32 map
-    spp_width: int = 32
-    decoder_widths: tuple = (96, 64, 48)     # decoder stages at strides 16, 8, 4
-    dropout: float = 0.5                     # only used by *-dropout heads
-    mc_samples: int = 32                     # Monte-Carlo samples at test time (*-dropout heads)
-    num_bins: int = 64
-    min_depth: float = 1.0
-    max_depth: float = 80.0
-    input_height: int = 192
-    input_width: int = 640
+    head: str = field(default="binary", metadata=bounded(nonempty=True))
+    block: str = field(default="basic", metadata=bounded(choices=("basic", "bottleneck")))  # ResNet-18/34 or -50
+    layers: tuple = field(default=(1, 1, 1, 1), metadata=bounded(item=int, length=4, lo=1, hi=64))  # blocks per stage
+    widths: tuple = field(default=(32, 64, 96, 128), metadata=bounded(item=int, length=4, lo=1, hi=8192))  # stage widths (bottleneck output = 4× width)
+    stem_width: int = field(default=24, metadata=bounded(lo=1, hi=8192))
+    spp_levels: tuple = field(default=(1, 2, 4), metadata=bounded(item=int, nonempty=True, lo=1, hi=64))  # pyramid pooling grid sizes on the stride-32 map
+    spp_width: int = field(default=32, metadata=bounded(lo=1, hi=8192))
+    decoder_widths: tuple = field(default=(96, 64, 48), metadata=bounded(item=int, length=3, lo=1, hi=8192))  # decoder stages at strides 16, 8, 4
+    dropout: float = field(default=0.5, metadata=bounded(lo=0, hi=1, hi_open=True))  # only used by *-dropout heads
+    mc_samples: int = field(default=32, metadata=bounded(lo=1, hi=10000))  # Monte-Carlo samples at test time (*-dropout heads)
+    num_bins: int = field(default=64, metadata=bounded(lo=2, hi=100000))
+    min_depth: float = field(default=1.0, metadata=bounded(lo=0, lo_open=True))  # metres
+    max_depth: float = field(default=80.0, metadata=bounded(lo=0, lo_open=True))  # metres, > min_depth
+    input_height: int = field(default=192, metadata=bounded(lo=32, hi=8192, multiple_of=32))
+    input_width: int = field(default=640, metadata=bounded(lo=32, hi=8192, multiple_of=32))
     beyond: bool = False                     # trained with beyond-range (sky) targets: heads say p(no surface)
-    hypotheses: int = 5                      # M, only used by the mhl head
-    wta_epsilon: float = 0.05                # relaxed winner-takes-all ε, only used by the mhl head
+    hypotheses: int = field(default=5, metadata=bounded(lo=1, hi=1000))  # M, only used by the mhl head
+    wta_epsilon: float = field(default=0.05, metadata=bounded(lo=0, hi=1, hi_open=True))  # relaxed winner-takes-all ε (mhl)
 
     @property
     def bins(self) -> DepthBins:
@@ -53,17 +54,16 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "config") -> "ModelConfig":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise MonoMapError(f"{source}: unknown model keys {sorted(unknown)}")
-        d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        d = check_fields(cls, d, source)  # types and ranges, naming source and key
         cfg = cls(**d)
         cfg.validate(source)
         return cfg
 
     def validate(self, source: str = "config") -> None:
-        get_head(self.head)
+        try:
+            get_head(self.head)
+        except MonoMapError as exc:
+            raise MonoMapError(f"{source}: {exc}") from None
         if self.block not in ("basic", "bottleneck"):
             raise MonoMapError(f"{source}: block must be 'basic' or 'bottleneck', got {self.block!r}")
         if len(self.layers) != 4 or len(self.widths) != 4 or len(self.decoder_widths) != 3:
@@ -72,6 +72,9 @@ class ModelConfig:
             raise MonoMapError(f"{source}: need hypotheses >= 1 and 0 <= wta_epsilon < 1")
         if self.input_height % 32 or self.input_width % 32:
             raise MonoMapError(f"{source}: input size {self.input_height}x{self.input_width} must be multiples of 32")
+        if not self.min_depth < self.max_depth:
+            raise MonoMapError(f"{source}: max_depth: must be above min_depth ({self.min_depth:g} m), "
+                               f"got {self.max_depth:g}")
         self.bins  # validates the range
 
 
@@ -92,12 +95,14 @@ NAMED_CONFIGS = {
 }
 
 
-def named_config(name: str, **overrides) -> ModelConfig:
-    if name not in NAMED_CONFIGS:
-        raise MonoMapError(f"model: unknown architecture {name!r} (choose from {', '.join(NAMED_CONFIGS)})")
+def named_config(name: str, source: str | None = None, **overrides) -> ModelConfig:
+    """Architecture ``name`` with ``overrides``; ``source`` (e.g. "run.toml [model]") names them in errors."""
+    where = source or f"model {name}"
+    if not isinstance(name, str) or name not in NAMED_CONFIGS:
+        raise MonoMapError(f"{where}: arch: unknown architecture {name!r} (choose from {', '.join(NAMED_CONFIGS)})")
     d = NAMED_CONFIGS[name].to_dict()
     d.update(overrides)
-    return ModelConfig.from_dict(d, source=f"model {name}")
+    return ModelConfig.from_dict(d, source=where)
 
 
 def conv_bn_relu(cin: int, cout: int, k: int = 3, stride: int = 1) -> nn.Sequential:

@@ -2,7 +2,8 @@
 
 Pipeline: a one-off cache of training frames (images resized to the model's input scale and
 LiDAR depth targets min-pooled to it, stored as .npy under data/cache/) -> random crops with the
-paper's augmentations (gamma, brightness, colour shift; Godard et al.) and horizontal flips ->
+paper's augmentations (gamma, brightness, colour shift; Godard et al.) or a camera's (depth/augment.py),
+optional scale with the focal length kept, and horizontal flips ->
 Adam with step decay -> checkpoints (resumable) -> a shipped checkpoint without optimizer state.
 Multi-process: launched by ``torchrun`` (env RANK/WORLD_SIZE) or ``torch.multiprocessing``; gloo on
 CPU, nccl on GPU, DistributedDataParallel; rank 0 writes checkpoints.
@@ -22,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from mono_map.errors import MonoMapError
+from mono_map.schema import bounded, check_fields
 
 HELD_OUT = {"00"}
 
@@ -29,40 +31,46 @@ HELD_OUT = {"00"}
 @dataclass(frozen=True)
 class DataConfig:
     root: str | None = None                          # KITTI root (None -> mono_map.paths.data_root)
-    sequences: tuple = ("05", "06", "07", "08", "09", "10")
-    frames: int = 0                                  # leading frames of each sequence (0 = all; generated if missing)
-    frame_step: int = 1                              # use every n-th of them
-    target: str = "lidar"                            # "lidar" (velodyne into image_2) or "dense" (depth_2 PNGs)
-    cache_dir: str = "data/cache"
+    sequences: tuple = field(default=("05", "06", "07", "08", "09", "10"), metadata=bounded(item=str))
+    frames: int = field(default=0, metadata=bounded(lo=0))  # leading frames of each sequence (0 = all; generated if missing)
+    frame_step: int = field(default=1, metadata=bounded(lo=1))  # use every n-th of them
+    target: str = field(default="lidar", metadata=bounded(choices=("lidar", "dense")))  # velodyne into image_2 / depth_2 PNGs
+    cache_dir: str = field(default="data/cache", metadata=bounded(nonempty=True))
     trainset: str = ""                               # randomised-town cache (data/synth/trainset.py); "" = sequences
-    towns: tuple = ()                                # trainset towns to train on (empty = all but the validation town)
+    towns: tuple = field(default=(), metadata=bounded(item=str))  # trainset towns to train on (empty = all but the validation town)
     validation_town: str = "val09"                   # held-out trainset town for the learning curve ("" = none)
-    validation_frames: int = 24                      # frames of it scored at every validation
-    sky_stride: int = 3                              # lidar targets: no-surface (sky) labels on this pixel grid
-    max_targets: int = 12000                         # target pixels sampled per crop (0 = all; dense targets)
+    validation_frames: int = field(default=24, metadata=bounded(lo=1))  # frames of it scored at every validation
+    sky_stride: int = field(default=3, metadata=bounded(lo=1))  # lidar targets: no-surface (sky) labels on this pixel grid
+    max_targets: int = field(default=12000, metadata=bounded(lo=0))  # target pixels sampled per crop (0 = all; dense targets)
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    steps: int = 1500
-    batch_size: int = 8
-    crop: tuple = (128, 416)                         # random crop (H, W) of the resized frames, pixels
-    lr: float = 1e-4                                 # Adam initial learning rate (paper: 1e-4)
-    lr_decay_at: float = 0.75                        # fraction of steps after which lr *= lr_decay (paper: 45/60 epochs)
-    lr_decay: float = 0.1
+    steps: int = field(default=1500, metadata=bounded(lo=1))
+    batch_size: int = field(default=8, metadata=bounded(lo=1, hi=4096))
+    crop: tuple = field(default=(128, 416), metadata=bounded(item=int, length=2, lo=32))  # random crop (H, W) of the resized frames, pixels
+    lr: float = field(default=1e-4, metadata=bounded(lo=0, hi=1, lo_open=True))  # Adam initial learning rate (paper: 1e-4)
+    lr_decay_at: float = field(default=0.75, metadata=bounded(lo=0, hi=1))  # fraction of steps after which lr *= lr_decay (paper: 45/60 epochs)
+    lr_decay: float = field(default=0.1, metadata=bounded(lo=0, hi=1, lo_open=True))
     augment: bool = True
-    seed: int = 0
-    threads: int = 2
-    checkpoint_every: int = 250
-    log_every: int = 25
-    work_dir: str = "outputs/train"                  # resumable checkpoints (with optimizer state)
+    seed: int = field(default=0, metadata=bounded(lo=0))
+    threads: int = field(default=2, metadata=bounded(lo=1, hi=1024))
+    checkpoint_every: int = field(default=250, metadata=bounded(lo=1))
+    keep_checkpoints: bool = False                   # also keep <work_dir>/<name>/step<N>.pt (weights only)
+    log_every: int = field(default=25, metadata=bounded(lo=1))
+    work_dir: str = field(default="outputs/train", metadata=bounded(nonempty=True))  # resumable checkpoints (with optimizer state)
     output: str = ""                                 # final checkpoint ("" -> <work_dir>/<name>/final.pt)
-    schedule: str = "step"                           # "step" (x lr_decay at lr_decay_at) or "cosine" (to lr·lr_decay)
+    schedule: str = field(default="step", metadata=bounded(choices=("step", "cosine")))  # x lr_decay at lr_decay_at, or cosine to lr·lr_decay
     channels_last: bool = False                      # NHWC memory format (2-10 % faster here; with bf16 much more)
     bf16: bool = False                               # bfloat16 autocast of the forward pass (2x faster with AMX)
-    validate_every: int = 0                          # steps between validations (0 = never)
+    validate_every: int = field(default=0, metadata=bounded(lo=0))  # steps between validations (0 = never)
     init: str = ""                                   # start from this checkpoint's weights (path or shipped name,
                                                      # e.g. "v2/binary"; same network and bins); fresh optimizer
+    photometric: str = field(default="godard", metadata=bounded(choices=("godard", "camera")))  # colour augmentation (depth/augment.py): "godard" (the paper's,
+                                                     # half the crops) or "camera" (nine camera families)
+    camera_families: tuple = ()                      # "camera": only these families (empty = all nine)
+    scale: tuple = (1.0, 1.0)                        # enlarge each frame by s ~ U(lo, hi) >= 1 before the crop,
+                                                     # depth targets / s (focal length kept; depth/augment.py)
 
 
 @dataclass(frozen=True)
@@ -78,11 +86,23 @@ class RunConfig:
 
         m = dict(self.model)
         arch = m.pop("arch", "small")
-        return named_config(arch, **m)
+        return named_config(arch, source=f"{self.source or 'config'} [model]", **m)
+
+
+@dataclass(frozen=True)
+class RunFile:
+    """The top level of a training config file (the schema :func:`load_run_config` checks)."""
+
+    name: str = field(default="", metadata=bounded(nonempty=True))
+    model: dict = field(default_factory=dict)
+    data: dict = field(default_factory=dict)
+    train: dict = field(default_factory=dict)
 
 
 def load_run_config(path: str | os.PathLike) -> RunConfig:
-    """Read a TOML or JSON training config: tables [model] (arch + ModelConfig overrides), [data], [train]."""
+    """Read a TOML or JSON training config: tables [model] (arch + ModelConfig overrides), [data], [train];
+    every key is checked against its declared type and range (:mod:`mono_map.schema`), naming file,
+    section and key."""
     path = Path(path)
     if not path.is_file():
         raise MonoMapError(f"{path}: config file not found")
@@ -94,21 +114,14 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
 
             raw = tomllib.loads(path.read_text())
     except Exception as exc:  # noqa: BLE001
-        raise MonoMapError(f"{path}: cannot parse config ({exc})") from None
-    unknown = set(raw) - {"name", "model", "data", "train"}
-    if unknown:
-        raise MonoMapError(f"{path}: unknown sections {sorted(unknown)}")
-
-    def make(cls, d, section):
-        names = set(cls.__dataclass_fields__)
-        bad = set(d) - names
-        if bad:
-            raise MonoMapError(f"{path}: unknown keys in [{section}]: {sorted(bad)}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
-
-    cfg = RunConfig(name=str(raw.get("name", path.stem)), model=dict(raw.get("model", {})),
-                    data=make(DataConfig, raw.get("data", {}), "data"),
-                    train=make(TrainConfig, raw.get("train", {}), "train"), source=str(path))
+        raise MonoMapError(f"{path}: cannot parse config ({' '.join(str(exc).split())})") from None
+    top = check_fields(RunFile, raw, str(path))
+    data = check_fields(DataConfig, top.get("data", {}), f"{path} [data]")
+    train = check_fields(TrainConfig, top.get("train", {}), f"{path} [train]")
+    cfg = RunConfig(name=top.get("name", path.stem), model=dict(top.get("model", {})),
+                    data=DataConfig(**data), train=TrainConfig(**train), source=str(path))
+    if "/" in cfg.name or cfg.name.startswith("."):
+        raise MonoMapError(f"{path}: name: {cfg.name!r} must be a plain folder name (no '/', not starting with '.')")
     validate_run_config(cfg)
     return cfg
 
@@ -126,7 +139,65 @@ def validate_run_config(cfg: RunConfig) -> None:
         raise MonoMapError(f"{src}: the validation town {cfg.data.validation_town} must not be a training town")
     if cfg.train.steps < 1 or cfg.train.batch_size < 1:
         raise MonoMapError(f"{src}: train.steps and train.batch_size must be >= 1")
+    validate_augmentation(cfg.train, src)
     cfg.model_config()  # validates architecture / head
+
+
+def validate_augmentation(t: TrainConfig, src: str = "config") -> None:
+    """train.photometric, train.camera_families and train.scale: one MonoMapError naming the key."""
+    from mono_map.depth.augment import FAMILIES, POLICIES
+
+    if t.photometric not in POLICIES:
+        raise MonoMapError(f"{src}: train.photometric must be one of {', '.join(POLICIES)}, got {t.photometric!r}")
+    bad = [f for f in t.camera_families if f not in FAMILIES]
+    if bad:
+        raise MonoMapError(f"{src}: train.camera_families: unknown {bad} (known: {', '.join(FAMILIES)})")
+    if t.camera_families and t.photometric != "camera":
+        raise MonoMapError(f"{src}: train.camera_families needs train.photometric = \"camera\"")
+    sc = t.scale
+    if (len(sc) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in sc)
+            or not 1.0 <= sc[0] <= sc[1] <= 2.0):
+        raise MonoMapError(f"{src}: train.scale must be [lo, hi] with 1 <= lo <= hi <= 2, got {list(sc)}")
+
+
+@dataclass(frozen=True)
+class Augmentation:
+    """What a batch does to its crops (built once from a TrainConfig by :func:`augmentation`)."""
+    colour: bool = True                # photometric augmentation at all (train.augment)
+    policy: str = "godard"
+    camera: object = None              # augment.CameraAugment for policy "camera"
+    scale: tuple = (1.0, 1.0)
+
+
+def augmentation(t: TrainConfig) -> Augmentation:
+    from mono_map.depth.augment import CameraAugment
+
+    return Augmentation(colour=t.augment, policy=t.photometric, camera=CameraAugment().only(tuple(t.camera_families)),
+                        scale=tuple(float(v) for v in t.scale))
+
+
+def augment_crop(img: np.ndarray, dep: np.ndarray, ch: int, cw: int, rng: np.random.Generator, aug: Augmentation):
+    """One training crop of a frame (img (H,W,3) uint8, dep (H,W) metres): scale/crop, colour, 50 % flip ->
+    (float32 image in [0,1], float32 depths). With the default Augmentation the random draws are exactly
+    those of the training before depth/augment.py (same crops, same colours, same flips)."""
+    from mono_map.depth.augment import photometric, scale_crop
+
+    H, W = dep.shape
+    if aug.scale[1] > 1.0:
+        s = float(rng.uniform(*aug.scale)) if aug.scale[1] > aug.scale[0] else aug.scale[0]
+        Hs, Ws = int(round(H * s)), int(round(W * s))
+        top, left = int(rng.integers(Hs - ch + 1)), int(rng.integers(Ws - cw + 1))
+        img, dep = scale_crop(np.asarray(img), np.asarray(dep, np.float32), s, top, left, ch, cw)
+    else:
+        top, left = int(rng.integers(H - ch + 1)), int(rng.integers(W - cw + 1))
+        img, dep = img[top:top + ch, left:left + cw], dep[top:top + ch, left:left + cw]
+    img = np.asarray(img, dtype=np.float32) / 255.0
+    dep = np.asarray(dep, dtype=np.float32)
+    if aug.colour:
+        img = photometric(img, rng, aug.policy, aug.camera)
+    if rng.random() < 0.5:
+        img, dep = img[:, ::-1], dep[:, ::-1]
+    return img, dep
 
 
 # ------------------------------------------------------------------ data cache
@@ -167,8 +238,15 @@ def build_cache(cfg: RunConfig, model_cfg) -> tuple[np.ndarray, np.ndarray, Path
         jobs += [(seq, i) for i in range(0, n, d.frame_step)]
     if not jobs:
         raise MonoMapError(f"{cfg.source}: no training frames selected")
+    from mono_map.data.fingerprint import sequence_fingerprint
+
+    by_seq: dict = {}
+    for s, i in jobs:
+        by_seq.setdefault(s.name, (s, []))[1].append(i)
+    parts = ("calibration", "images") + (("scans",) if d.target == "lidar" else ("depth",))
+    contents = {name: sequence_fingerprint(s, idx, parts) for name, (s, idx) in by_seq.items()}
     key = json.dumps({"root": str(root.resolve()), "jobs": [(s.name, i) for s, i in jobs], "target": d.target,
-                      "size": [model_cfg.input_height, model_cfg.input_width]}, sort_keys=True)
+                      "size": [model_cfg.input_height, model_cfg.input_width], "data": contents}, sort_keys=True)
     tag = hashlib.sha1(key.encode()).hexdigest()[:10]
     cache_dir = Path(d.cache_dir)
     img_path, dep_path = cache_dir / f"depth_train_{tag}_images.npy", cache_dir / f"depth_train_{tag}_depths.npy"
@@ -207,7 +285,7 @@ class TrainsetSampler:
         self.refresh()
         if not self.towns:
             raise MonoMapError(f"{data.trainset}: no training towns in the cache (render them with "
-                               "tools/render_trainset.py)")
+                               "mono-map render-trainset)")
 
     def refresh(self) -> int:
         """Re-scan the cache: towns created and frames finished since the last call join the pool."""
@@ -229,20 +307,17 @@ class TrainsetSampler:
         t, f = self.index[k]
         return frame_target(t, int(f), self.data.target, self.data.sky_stride)
 
-    def batch(self, batch: int, crop: tuple, rng: np.random.Generator, augment: bool):
+    def batch(self, batch: int, crop: tuple, rng: np.random.Generator, augment: "bool | Augmentation"):
+        """(B,3,h,w) float32 crops in [0,1], (B,h,w) targets; ``augment``: an Augmentation, or a bool for
+        the default one with (True) or without (False) colour augmentation."""
+        aug = augment if isinstance(augment, Augmentation) else Augmentation(colour=bool(augment))
         H, W = self.towns[0].meta["height"], self.towns[0].meta["width"]
         ch, cw = min(crop[0], H), min(crop[1], W)
         xs = np.empty((batch, 3, ch, cw), np.float32)
         ys = np.empty((batch, ch, cw), np.float32)
         for b in range(batch):
             img, dep = self.frame(int(rng.integers(len(self.index))))
-            top, left = int(rng.integers(H - ch + 1)), int(rng.integers(W - cw + 1))
-            img = img[top:top + ch, left:left + cw].astype(np.float32) / 255.0
-            dep = dep[top:top + ch, left:left + cw]
-            if augment and rng.random() < 0.5:
-                img = augment_colour(img, rng)
-            if rng.random() < 0.5:
-                img, dep = img[:, ::-1], dep[:, ::-1]
+            img, dep = augment_crop(img, dep, ch, cw, rng, aug)
             if self.data.max_targets:
                 dep = subsample_targets(dep, self.data.max_targets, rng)
             xs[b] = img.transpose(2, 0, 1)
@@ -285,30 +360,17 @@ def subsample_targets(dep: np.ndarray, n: int, rng: np.random.Generator) -> np.n
 
 
 # ------------------------------------------------------------------ batches
-def augment_colour(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Godard et al.'s augmentation on an (h,w,3) float image in [0,1]: gamma 0.8-1.2,
-    brightness 0.5-2.0, per-channel colour shift 0.8-1.2, clipped to [0,1]."""
-    img = img ** rng.uniform(0.8, 1.2)
-    img = img * rng.uniform(0.5, 2.0)
-    img = img * rng.uniform(0.8, 1.2, size=3).astype(np.float32)
-    return np.clip(img, 0.0, 1.0)
-
-
-def sample_batch(images, depths, batch: int, crop: tuple, rng: np.random.Generator, augment: bool):
-    """Random crops (+ 50 % colour augmentation, 50 % horizontal flip) -> (B,3,h,w) float32, (B,h,w) metres."""
+def sample_batch(images, depths, batch: int, crop: tuple, rng: np.random.Generator, augment: "bool | Augmentation"):
+    """Random crops (colour augmentation, 50 % horizontal flip; see augment_crop) -> (B,3,h,w) float32,
+    (B,h,w) metres."""
+    aug = augment if isinstance(augment, Augmentation) else Augmentation(colour=bool(augment))
     n, H, W = depths.shape
     ch, cw = min(crop[0], H), min(crop[1], W)
     xs = np.empty((batch, 3, ch, cw), np.float32)
     ys = np.empty((batch, ch, cw), np.float32)
     for b in range(batch):
         i = int(rng.integers(n))
-        top, left = int(rng.integers(H - ch + 1)), int(rng.integers(W - cw + 1))
-        img = np.asarray(images[i, top:top + ch, left:left + cw], dtype=np.float32) / 255.0
-        dep = np.asarray(depths[i, top:top + ch, left:left + cw], dtype=np.float32)
-        if augment and rng.random() < 0.5:
-            img = augment_colour(img, rng)
-        if rng.random() < 0.5:
-            img, dep = img[:, ::-1], dep[:, ::-1]
+        img, dep = augment_crop(images[i], depths[i], ch, cw, rng, aug)
         xs[b] = img.transpose(2, 0, 1)
         ys[b] = dep
     return xs, ys
@@ -454,11 +516,11 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
         model_ddp = model
     model.train()
     decay_step = int(math.ceil(t.lr_decay_at * t.steps))
+    aug = augmentation(t)
     t0, c0 = time.time(), time.process_time()
     losses: list[float] = []
     meta = {}
-    work.mkdir(parents=True, exist_ok=True)
-    curve_path = work / "curve.jsonl"
+    curve_path = work / "curve.jsonl"  # work/ is made by the first file written into it (none if a run fails first)
     best = _best_so_far(curve_path)
     steps = range(start, t.steps)
     it = progress(steps, total=len(steps), desc=f"train {cfg.name}", unit="step") if rank == 0 else steps
@@ -469,11 +531,11 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
             g["lr"] = lr
         rng = np.random.default_rng([t.seed, rank, step])
         if sampler is not None:
-            if step % 500 == 0:
+            if step % 100 == 0:          # frames rendered meanwhile join the pool (a complete cache: no change)
                 n_frames = sampler.refresh()
-            x, y = sampler.batch(t.batch_size, t.crop, rng, t.augment)
+            x, y = sampler.batch(t.batch_size, t.crop, rng, aug)
         else:
-            x, y = sample_batch(images, depths, t.batch_size, t.crop, rng, t.augment)
+            x, y = sample_batch(images, depths, t.batch_size, t.crop, rng, aug)
         x, y = torch.from_numpy(x).to(device), torch.from_numpy(y).to(device)
         if t.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
@@ -499,6 +561,7 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
             v = validator(model)
             v.update(step=done, cpu_hours=round(cpu / 3600, 6), wall_hours=round((wall_before + time.time() - t0) / 3600, 6),
                      train_frames=n_frames, loss=float(np.mean(losses[-t.log_every:])))
+            work.mkdir(parents=True, exist_ok=True)
             with open(curve_path, "a") as fh:
                 fh.write(json.dumps(v) + "\n")
             log(f"[{cfg.name}] validation at step {done}: AbsRel {v['abs_rel']:.3f} d1 {v['delta1']:.3f} "
@@ -511,6 +574,8 @@ def train(cfg: RunConfig, resume: bool = True, rank: int | None = None, world: i
         if rank == 0 and (done % t.checkpoint_every == 0 or done == t.steps):
             meta = _metadata(cfg, done, wall_before + time.time() - t0, losses, world, n_frames, cpu)
             save_checkpoint(last, model, meta, optimizer_state=opt.state_dict())
+            if t.keep_checkpoints:
+                save_checkpoint(work / f"step{done}.pt", model, meta)
     if world > 1:
         tdist.barrier()
     meta = _metadata(cfg, t.steps, wall_before + time.time() - t0, losses, world, n_frames,

@@ -216,6 +216,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         "metrics_argmax": mean_errors(per["argmax"]),
         "metrics_median_scaled": mean_errors(per["median"]),
         "median_ratio": {"median": float(np.median(ratios)), "std": float(np.std(ratios))} if ratios else None,
+        "mean_entropy": float(P["entropy"].mean()),                    # nats, at the ground-truth pixels
         "sparsification": spars,
         "auc_std_log": spars_std["auc"],
         # an uncertainty equal at every pixel (l2, berhu, MHL with one hypothesis) ranks nothing: its AUCs are

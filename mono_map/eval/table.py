@@ -60,6 +60,7 @@ class Table:
     reliability: dict
     topdown: list[tuple[str, object]]
     extended: bool
+    pictures: list[str] = field(default_factory=list)   # file names of the pictures written beside it
 
 
 def missing_maps(jobs: list[tuple[MapJob, bool]], out_dir: Path) -> list[tuple[MapJob, bool]]:
@@ -78,7 +79,7 @@ def missing_maps(jobs: list[tuple[MapJob, bool]], out_dir: Path) -> list[tuple[M
             print(f"  reusing {bt}")
             continue
         if bt.exists():
-            print(f"  rebuilding {bt} ({why})")
+            print(f"  rebuilding {bt}: {why}")
         todo.append((job, need_ot))
     return todo
 
@@ -106,12 +107,13 @@ def build_missing(todo: list[tuple[MapJob, bool]], seq, out_dir: Path, predictor
                             predictor=predictor)
 
 
-def run_table(job: TableJob) -> Table:
-    """Build (or reuse) every map of the table, score them, write ``<stem>.md`` and ``<stem>.json``."""
+def run_table(job: TableJob, pictures=None) -> Table:
+    """Build (or reuse) every map of the table, score them, write ``<stem>.md``, ``<stem>.json`` and the
+    pictures ``pictures(table, folder)`` draws into ``folder`` (returning their file names) as one set."""
     from mono_map.data.prepare import prepare_sequence
     from mono_map.eval.map_metrics import calibration, compare_leaves, surface_precision, tree_summary
     from mono_map.frames import frames_tag
-    from mono_map.io import write_json_atomic, write_text_atomic
+    from mono_map.io import staged_dir, write_json_atomic, write_text_atomic
     from mono_map.mapping.build import load_predictor
     from mono_map.mapping.jobs import model_digest, read_map_sidecar
     from mono_map.mapping.octree import load_tree, tree_leaves
@@ -189,14 +191,18 @@ def run_table(job: TableJob) -> Table:
     md = table_markdown(rows, job.seq, desc, cfg, job.model, reference, dcfg if extended else None)
     stem = (f"table_{tag}_res{cfg.resolution:g}" + (f"_model-{Path(job.model).stem}" if job.model else "")
             + ("_ref-lidar" if reference == "lidar" else ""))
-    write_text_atomic(out_dir / f"{stem}.md", md)
-    write_json_atomic(out_dir / f"{stem}.json", {"sequence": job.seq, "frames": [frames[0], frames[-1] + 1],
-                                                  "reference": reference, "resolution": cfg.resolution,
-                                                  "model": job.model, "model_digest": digest, "rows": rows,
-                                                  "distribution": dcfg.__dict__ if extended else None,
-                                                  "reliability": reliability})
-    return Table(rows=rows, markdown=md, out_dir=out_dir, stem=stem, reference=reference, reliability=reliability,
-                 topdown=[(label, pics[label]) for label in pictured], extended=extended)
+    table = Table(rows=rows, markdown=md, out_dir=out_dir, stem=stem, reference=reference, reliability=reliability,
+                  topdown=[(label, pics[label]) for label in pictured], extended=extended)
+    # the table, its JSON and its pictures are published as one set: all of them or (a failure, a signal) none
+    with staged_dir(out_dir) as stage:
+        write_text_atomic(stage / f"{stem}.md", md)
+        write_json_atomic(stage / f"{stem}.json", {"sequence": job.seq, "frames": [frames[0], frames[-1] + 1],
+                                                   "reference": reference, "resolution": cfg.resolution,
+                                                   "model": job.model, "model_digest": digest, "rows": rows,
+                                                   "distribution": dcfg.__dict__ if extended else None,
+                                                   "reliability": reliability, "data": fov.key()["data"]})
+        table.pictures = list(pictures(table, stage)) if pictures is not None else []
+    return table
 
 
 def _pct(v) -> str:

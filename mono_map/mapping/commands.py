@@ -180,6 +180,10 @@ def run_build(args) -> int:
     selection = parse_frames(args.frames, default=first_frames(DEFAULT_FRAMES))
     check_name(args.name)
     rrd = check_output_file(args.rrd, "--rrd", ".rrd", min_free=RRD_MIN_FREE) if args.rrd else None
+    if args.viewer:
+        from mono_map.viz.commands import check_display
+
+        check_display("--viewer", "use --rrd OUT.rrd and open it with mono-map view where there is one")
     if args.reference_map is not None and not Path(args.reference_map).is_file():
         raise MonoMapError(f"--reference-map: {args.reference_map}: no such file")
     check_data_root(args.data_root)
@@ -230,13 +234,33 @@ def reference_path(ref: str, seq, cfg, frames, out_dir: Path) -> Path:
         bt = job.path(out_dir)
         ok, why = reusable(bt, job)
         if not ok:
-            print(f"building the {ref} reference map ({bt}: {why})", flush=True)
+            print(f"{'rebuilding' if bt.exists() else 'building'} the {ref} reference map {bt}: {why}", flush=True)
             build_and_write(job, seq, out_dir)
         return bt
     path = Path(ref)
     if not path.is_file():
         raise MonoMapError(f"--reference: {ref} is neither lidar, lidar-fov nor an existing .bt file")
     return path
+
+
+def check_map_data(map_path: Path, side: dict | None, seq, frames) -> None:
+    """Refuse to score ``map_path`` against a reference of ``seq``'s frames when the map's .json says it was
+    built from this sequence's frames as they were before (poses, images, scans ... changed since)."""
+    from mono_map.data.fingerprint import describe_change
+    from mono_map.errors import MonoMapError
+    from mono_map.mapping.jobs import data_fingerprint
+
+    job = (side or {}).get("job")
+    if not isinstance(job, dict) or not isinstance(job.get("data"), dict) or job.get("sequence") != seq.name:
+        return
+    from mono_map.frames import frames_tag
+
+    if str(Path(seq.root).resolve()) != job.get("data_root") or job.get("frames") != frames_tag(list(frames)):
+        return  # another copy of the data (modification times differ) or other frames: nothing to compare
+    now = dict(data_fingerprint(seq, str(job.get("source")), frames))
+    if {k: job["data"].get(k) for k in now} != now:
+        raise MonoMapError(f"--map: {map_path} was built from sequence {seq.name} before its data changed "
+                           f"({describe_change(job['data'], now)}); rebuild it to score it")
 
 
 def check_eval_options(args):
@@ -342,8 +366,12 @@ def run_eval(args) -> int:
                                            start=a, stop=b)
         except (TypeError, ValueError):
             raise MonoMapError(f"{map_path.with_suffix('.json')}: malformed 'frames' in the map's statistics") from None
+        if side is None and args.frames is None:
+            raise MonoMapError(f"--map: {map_path.with_suffix('.json')} is missing, so the frames {map_path.name} "
+                               f"was built from are unknown; pass --frames for them (or rebuild the map)")
         seq = prepare_sequence(args.data_root, args.seq, selection)
         frames = selection.resolve(len(seq))
+        check_map_data(map_path, side, seq, frames)
         ref_path = reference_path(args.reference, seq, cfg, frames, out_dir)
     else:
         ref_path = reference_path(args.reference, None, None, [], Path("."))
@@ -364,8 +392,8 @@ def run_table(job) -> int:
     from mono_map.eval.table import run_table as score_table
     from mono_map.viz.plots import plot_table
 
-    table = score_table(job)
-    pngs = plot_table(table)
+    table = score_table(job, pictures=plot_table)  # the table and its pictures are published together
+    pngs = table.pictures
     print(table.markdown)
     print(f"wrote {table.out_dir / (table.stem + '.md')}, .json, {', '.join(pngs)}")
     return 0

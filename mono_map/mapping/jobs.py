@@ -86,6 +86,21 @@ def synthetic_marker(seq) -> tuple[tuple[str, object], ...]:
     return tuple((k, info.get(k)) for k in ("recipe_hash", "generator_version", "n_frames"))
 
 
+# the files each source reads besides poses, timestamps and calibration
+SOURCE_FILES = {"mono": ("images",), "depth-gt": ("depth",), "lidar": ("scans",), "lidar-fov": ("scans",)}
+
+
+def data_fingerprint(seq, source: str, frames) -> tuple[tuple[str, str], ...]:
+    """What the frames a ``source`` map reads hold (:func:`mono_map.data.fingerprint.sequence_fingerprint`);
+    () without an open sequence."""
+    from mono_map.data.fingerprint import sequence_fingerprint
+
+    if seq is None or not hasattr(seq, "image_files"):
+        return ()
+    parts = ("poses", "times", "calibration") + SOURCE_FILES.get(source, ("images", "scans", "depth"))
+    return tuple(sorted(sequence_fingerprint(seq, frames, parts).items()))
+
+
 @dataclass(frozen=True)
 class MapJob:
     """Everything that determines a map. Settings a source ignores (keep for LiDAR, keep for a
@@ -108,6 +123,7 @@ class MapJob:
     digest: str | None = None
     precision: str | None = None
     synthetic: tuple[tuple[str, object], ...] = ()
+    data: tuple[tuple[str, str], ...] = ()   # what the frames hold (mono_map.data.fingerprint): part -> hash
 
     @classmethod
     def of(cls, seq, source: str, frames, *, keep: float = 1.0, integrate: str = "keep",
@@ -126,7 +142,7 @@ class MapJob:
                    distribution=distribution or DistributionConfig(), octomap=octomap or OctoMapConfig(),
                    stride=int(stride), model=model if mono else None,
                    digest=(digest or model_digest(model)) if mono else None, precision=precision,
-                   synthetic=synthetic_marker(seq))
+                   synthetic=synthetic_marker(seq), data=data_fingerprint(seq, source, frames))
 
     @property
     def mono(self) -> bool:
@@ -143,6 +159,7 @@ class MapJob:
         integration = {"method": "batched", "mode": self.integrate if self.mono else None,
                        "distribution": dataclasses.asdict(self.distribution) if self.distributional else None}
         return {"data_root": self.data_root, "sequence": self.sequence, "synthetic": dict(self.synthetic) or None,
+                "data": dict(self.data) or None,
                 "source": self.source, "keep": self.keep if self.mono and not self.distributional else None,
                 "stride": self.stride if camera else None, "model": self.digest if self.mono else None,
                 "frames": frames_tag(self.frames), "octomap": dataclasses.asdict(self.octomap),
@@ -217,8 +234,12 @@ def reusable(bt: Path, job: MapJob) -> tuple[bool, str]:
     if side is None:
         return False, f"{bt.with_suffix('.json').name} missing"
     if side.get("job") != key:
-        stored = side.get("job") or {}
+        from mono_map.data.fingerprint import describe_change
+
+        stored = side.get("job") if isinstance(side.get("job"), dict) else {}
         diff = sorted(k for k in set(key) | set(stored) if key.get(k) != stored.get(k))
+        if diff == ["data"]:  # the same settings, other frame contents: say what changed
+            return False, describe_change(stored.get("data"), key["data"] or {})
         return False, f"built with other {', '.join(diff) or 'settings'}"
     if side["stats"].get("bt_bytes") not in (None, bt.stat().st_size):
         return False, f"{bt.name} does not match its .json"
@@ -228,17 +249,13 @@ def reusable(bt: Path, job: MapJob) -> tuple[bool, str]:
 def memory_limit() -> tuple[float, str]:
     """Bytes a build may use, and where the figure comes from: ``$MONO_MAP_MEMORY_GB``, else the
     smaller of the available RAM (/proc/meminfo) and the address-space limit (ulimit -v)."""
-    import os
     import resource
 
-    env = os.environ.get("MONO_MAP_MEMORY_GB")
-    if env:
-        try:
-            return float(env) * 2**30, "$MONO_MAP_MEMORY_GB"
-        except ValueError:
-            from mono_map.errors import MonoMapError
+    from mono_map.schema import env_value
 
-            raise MonoMapError(f"$MONO_MAP_MEMORY_GB: expected a number of GB, got {env!r}") from None
+    gb = env_value("MONO_MAP_MEMORY_GB")  # checked: a positive, finite number of GB or refused naming it
+    if gb is not None:
+        return gb * 2**30, "$MONO_MAP_MEMORY_GB"
     limit, where = float("inf"), "no limit known"
     try:
         for line in open("/proc/meminfo"):

@@ -177,9 +177,11 @@ def _screenshot_headless(rrd: Path, png: Path, frame: int | None = None, timeout
         viewer.quit()
 
 
-def _check_display() -> None:
+def check_display(what: str = "view", instead: str = "use --save OUT.rrd or --screenshot OUT.png") -> None:
+    """MonoMapError, before any work, when there is no display to open a viewer on (Linux without
+    $DISPLAY / $WAYLAND_DISPLAY): rerun's viewer would otherwise time out after a long wait."""
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise MonoMapError("view: no display to open a viewer on (use --save OUT.rrd or --screenshot OUT.png)")
+        raise MonoMapError(f"{what}: no display to open a viewer on ({instead})")
 
 
 def run_view(args) -> int:
@@ -189,8 +191,11 @@ def run_view(args) -> int:
     suffix = path.suffix.lower()
     if suffix not in (".rrd", ".bt"):
         raise MonoMapError(f"{path}: expected a .rrd recording or a .bt OctoMap (got '{suffix or 'no suffix'}')")
-    if args.save is not None and Path(args.save).suffix.lower() != ".rrd":
-        raise MonoMapError(f"--save: {args.save}: the output must end in .rrd")
+    if args.save is not None:
+        from mono_map.io import check_output_file
+        from mono_map.mapping.jobs import RRD_MIN_FREE
+
+        check_output_file(args.save, "--save", ".rrd", min_free=RRD_MIN_FREE if suffix == ".bt" else 0)
 
     if suffix == ".rrd":
         _check_rrd(path)
@@ -206,13 +211,17 @@ def run_view(args) -> int:
         from mono_map.viz.rerun_stream import log_bt_map
 
         if args.save is None and args.screenshot is None:
-            _check_display()
+            check_display()
             info = log_bt_map(path, spawn=True, cells=args.cells)
             print(f"{path}: {info['cells']} occupied cells at {info['resolution']} m sent to the viewer",
                   file=sys.stderr)
             return 0
         rrd = Path(args.save) if args.save is not None else path.with_suffix(".view.rrd")
-        info = log_bt_map(path, rrd=rrd, cells=args.cells)
+        try:
+            info = log_bt_map(path, rrd=rrd, cells=args.cells)
+        except RuntimeError as exc:  # rerun's file sink could not flush (a full disk)
+            raise MonoMapError(f"{rrd}: rerun could not write the recording ({' '.join(str(exc).split())}); "
+                               "nothing was published") from None
         lo, hi = info["height_range"]
         print(f"wrote {rrd}: {info['cells']} occupied cells at {info['resolution']} m in {info['blocks']} blocks, "
               f"height colour range {lo:.2f}..{hi:.2f} m", file=sys.stderr)
@@ -221,7 +230,7 @@ def run_view(args) -> int:
         screenshot(rrd, Path(args.screenshot), args.frame)
         print(f"wrote {args.screenshot}", file=sys.stderr)
     elif args.save is None:
-        _check_display()
+        check_display()
         # Open in a detached viewer process (returns immediately).
         subprocess.Popen([rerun_binary(), str(rrd)], start_new_session=True,
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

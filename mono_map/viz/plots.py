@@ -105,11 +105,12 @@ def render_topdown(maps: list[tuple[str, object]], path: str | Path, res: float 
 # --------------------------------------------------------------------------- map table
 
 
-def plot_table(table) -> list[str]:
-    """The pictures of a :class:`mono_map.eval.table.Table` beside its Markdown: the keep sweep and, for the
-    extended table, accuracy vs memory and the reliability diagram, then the top-down maps; their file names."""
+def plot_table(table, folder: Path | None = None) -> list[str]:
+    """The pictures of a :class:`mono_map.eval.table.Table` beside its Markdown (in ``folder``, default its
+    ``out_dir``): the keep sweep and, for the extended table, accuracy vs memory and the reliability
+    diagram, then the top-down maps; their file names."""
     ref_label = "LiDAR-FOV" if table.reference == "lidar-fov" else "LiDAR"
-    out, stem = table.out_dir, table.stem
+    out, stem = Path(folder or table.out_dir), table.stem
     plot_sweep(table.rows, out / f"{stem}_sweep.png", ref_label)
     pngs = [f"{stem}_sweep.png"]
     if table.extended:

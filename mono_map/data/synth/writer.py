@@ -28,7 +28,7 @@ PARTIAL_MARKER = ".synth_partial.json"      # present while a generation is unde
 # image gains nothing from zlib's string matching, so Huffman-only coding after the AVG filter writes it 2.5×
 # faster and 12 % smaller than zlib level 1 with adaptive filters (13.5 vs 34.1 ms, 0.77 vs 0.87 MB); the
 # smooth uint16 depth keeps zlib with the UP filter only (5.8 vs 10.2 ms, 0.15 vs 0.13 MB). The pixels
-# decode identically to before; only the files' bytes changed (tools/bench_synth.py --compare decodes).
+# decode identically to before; only the files' bytes changed (benchmarks/bench_synth.py --compare decodes).
 def png_params(kind: str) -> list[int]:
     """cv2.imwrite parameters for an ``"image"`` (RGB) or ``"depth"`` (uint16) PNG."""
     import cv2
@@ -112,8 +112,16 @@ def read_marker(seq_dir: Path, partial: bool = False) -> dict | None:
     if not p.is_file():
         return None
     try:
-        info = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError, OSError):
+        text = p.read_text()
+    except OSError as exc:
+        if partial:
+            return {}
+        # unreadable is not malformed: re-rendering (synth --force) would not be the fix
+        raise MonoMapError(f"{p}: cannot read the synthetic-sequence marker ({exc.strerror}); "
+                           "check its permissions") from None
+    try:
+        info = json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError):
         info = None
     if partial:
         return info if isinstance(info, dict) else {}

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Surface precision of maps' occupied cells split by distance to the camera path and by height.
 
-    .venv/bin/python tools/surface_by_distance.py --seq 00 --frames 0:500 \\
+    .venv/bin/python tools/archive/surface_by_distance.py --seq 00 --frames 0:500 \\
         --surface outputs/seq00/depth-gt_res0.2_f0-500.bt \\
         model=outputs/seq00/mono-keep0.8_res0.2_f0-500.bt oracle=outputs/seq00/mono-keep0.8_model-oracle_res0.2_f0-500.bt
 
@@ -21,12 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from mono_map.data.kitti import open_sequence  # noqa: E402
-from mono_map.eval.map_metrics import near_surface  # noqa: E402
-from mono_map.frames import parse_frames  # noqa: E402
-from mono_map.mapping.octree import key_to_coord, load_tree, occupied_keys, tree_leaves  # noqa: E402
+from mono_map.data.kitti import open_sequence
+from mono_map.eval.map_metrics import near_surface
+from mono_map.frames import parse_frames
+from mono_map.mapping.octree import key_to_coord, load_tree, occupied_keys, tree_leaves
 
 DISTANCES = (0, 10, 20, 30, 40, 60, 100)
 HEIGHTS = (-5, 1, 3, 6, 12, 40)

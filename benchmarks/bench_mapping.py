@@ -2,9 +2,9 @@
 """Benchmark map integration on the same scans: octomap-python's insertPointCloud vs mono-map's
 batched exact path vs OctoMap's C++ graph2tree (Debian octomap-tools), in one run.
 
-    .venv/bin/python tools/bench_mapping.py --seq 00 --source lidar --frames 0:30
-    .venv/bin/python tools/bench_mapping.py --seq 00 --source mono --model oracle --frames 0:10
-    .venv/bin/python tools/bench_mapping.py --seq 00 --integrate --model shipped --frames 0:10 --repeat 3
+    .venv/bin/python benchmarks/bench_mapping.py --seq 00 --source lidar --frames 0:30
+    .venv/bin/python benchmarks/bench_mapping.py --seq 00 --source mono --model oracle --frames 0:10
+    .venv/bin/python benchmarks/bench_mapping.py --seq 00 --integrate --model shipped --frames 0:10 --repeat 3
 
 With --integrate: ``--integrate keep`` (keep --keep) against ``--integrate distribution`` on the
 same predicted frames, back to back, --repeat times: the map update alone (from the prediction to
@@ -36,18 +36,16 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from mono_map.config import OctoMapConfig  # noqa: E402
-from mono_map.data.prepare import prepare_sequence  # noqa: E402
-from mono_map.frames import first_frames, parse_frames  # noqa: E402
-from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
-from mono_map.mapping.integrate import MapIntegrator  # noqa: E402
-from mono_map.mapping.octree import tree_leaves  # noqa: E402
-from mono_map.mapping.points import camera_origin, pixels_to_world  # noqa: E402
-from mono_map.mapping.reference import lidar_measurement  # noqa: E402
-from mono_map.mapping.scangraph import write_scan_graph  # noqa: E402
-from mono_map.mapping.select import select_pixels  # noqa: E402
+from mono_map.config import OctoMapConfig
+from mono_map.data.prepare import prepare_sequence
+from mono_map.frames import first_frames, parse_frames
+from mono_map.mapping.distribution import DistributionConfig
+from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.octree import tree_leaves
+from mono_map.mapping.points import camera_origin, pixels_to_world
+from mono_map.mapping.reference import lidar_measurement
+from mono_map.mapping.scangraph import write_scan_graph
+from mono_map.mapping.select import select_pixels
 
 
 def integrate_timed(integrator: MapIntegrator, scans) -> tuple[MapIntegrator, float]:

@@ -1,7 +1,7 @@
 """Benchmark the depth network on this machine: network forward at the model input size (192×640
 for `small`) and the full DepthPredictor.predict on a KITTI-sized 376×1241 image.
 
-    .venv/bin/python tools/bench_depth.py [--arch small] [--head binary] [--threads 2] [--frames 20]
+    .venv/bin/python benchmarks/bench_depth.py [--arch small] [--head binary] [--threads 2] [--frames 20]
 """
 
 from __future__ import annotations

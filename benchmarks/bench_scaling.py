@@ -2,7 +2,7 @@
 """Scaling study of ``mono-map build``: wall time, frames/s, peak RSS and map memory against the number
 of frames (issue 14).
 
-    python tools/bench_scaling.py --data-root ~/.cache/mono-map/data/kitti_full \
+    python benchmarks/bench_scaling.py --data-root ~/.cache/mono-map/data/kitti_full \
         --sizes 500,1000,2000,4541 --sources lidar-fov,mono --out outputs/scaling
 
 Each (source, size) is one ``mono-map build --frames 0:N`` child process; its peak RSS and CPU time come
@@ -26,9 +26,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 
 def frames_available(data_root: Path, seq: str) -> int:
@@ -62,11 +59,10 @@ def run_one(args, source: str, n: int) -> dict:
     log = args.out / "logs" / f"{name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     cmd = build_command(args, source, n, name)
-    env = dict(os.environ, PYTHONPATH=str(REPO))
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     with log.open("w") as fh:
-        proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, cwd=REPO,
+        proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT,
                                 preexec_fn=(lambda: os.nice(args.nice)) if args.nice else None)
         _, status, ru = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
@@ -195,7 +191,7 @@ def main() -> int:
     ap.add_argument("--sizes", default="500,1000,2000,4541", help="comma-separated frame counts (first N frames)")
     ap.add_argument("--sources", default="lidar-fov,mono", help="comma-separated build sources")
     ap.add_argument("--keep", type=float, default=0.8, help="mono keep fraction (default 0.8)")
-    ap.add_argument("--out", type=Path, default=REPO / "outputs" / "scaling")
+    ap.add_argument("--out", type=Path, default=Path("outputs") / "scaling")
     ap.add_argument("--nice", type=int, default=0, help="niceness of the build children")
     ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the 1-frame builds")
     ap.add_argument("--wait", action="store_true", help="wait for the data root to hold N frames")

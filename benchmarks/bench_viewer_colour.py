@@ -8,7 +8,7 @@ probability updates are synthetic but shaped like an integration's: every cell t
 (p in [0.5, 1)), every freed cell (p < 0.5), a quarter of the occupied cells refreshed, and
 ``--free-cells`` random cells that stay free (which the logger must look at and ignore).
 
-    python tools/bench_viewer_colour.py --seq 00 --frames 0:40 --source mono
+    python benchmarks/bench_viewer_colour.py --seq 00 --frames 0:40 --source mono
 """
 
 from __future__ import annotations
@@ -22,8 +22,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def with_probabilities(updates, resolution: float, free_cells: int, seed: int = 0):

@@ -3,7 +3,7 @@
 of a synthetic sequence: relative error of kept vs removed pixels, and how sky pixels (depth_2 = 0, never
 supervised by the LiDAR) are predicted and selected.
 
-    .venv/bin/python tools/diag_entropy_selection.py --seq 00 --frames 0:500:25 --keep 0.8
+    .venv/bin/python tools/archive/diag_entropy_selection.py --seq 00 --frames 0:500:25 --keep 0.8
 """
 
 from __future__ import annotations
@@ -14,13 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from mono_map.data.depth_png import read_depth_png  # noqa: E402
-from mono_map.data.prepare import prepare_sequence  # noqa: E402
-from mono_map.frames import parse_frames  # noqa: E402
-from mono_map.mapping.build import load_predictor  # noqa: E402
-from mono_map.mapping.select import select_pixels  # noqa: E402
+from mono_map.data.depth_png import read_depth_png
+from mono_map.data.prepare import prepare_sequence
+from mono_map.frames import parse_frames
+from mono_map.mapping.build import load_predictor
+from mono_map.mapping.select import select_pixels
 
 
 def main() -> int:

@@ -2,7 +2,7 @@
 autocast, channels_last, torch.compile, thread counts. Variants run interleaved (round-robin), so a
 change in machine load hits all of them alike; each prints min/median/max seconds per step.
 
-    python tools/bench_train.py [--archs small,resnet18-half,resnet18] [--batch 4] [--crop 192x320]
+    python benchmarks/bench_train.py [--archs small,resnet18-half,resnet18] [--batch 4] [--crop 192x320]
                                 [--variants fp32,channels_last,bf16,bf16_channels_last,compile] [--threads 1,2]
                                 [--steps 8]
 bf16 = torch.autocast(bfloat16) around the forward pass (the loss in fp32); on CPUs with AMX it is faster.
@@ -12,18 +12,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from mono_map.depth.losses import head_loss  # noqa: E402
-from mono_map.depth.networks import DepthNet, named_config  # noqa: E402
-from mono_map.depth.train import outputs_at_targets  # noqa: E402
+from mono_map.depth.losses import head_loss
+from mono_map.depth.networks import DepthNet, named_config
+from mono_map.depth.train import outputs_at_targets
 
 
 def make_step(arch: str, variant: str, batch: int, crop: tuple[int, int]):

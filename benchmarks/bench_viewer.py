@@ -10,7 +10,7 @@ rerun threads may overlap with the build on a second core, which wall time would
 Also: the recording's size per frame and what the logger sent (block re-logs, cells re-sent vs
 cells changed).
 
-    python tools/bench_viewer.py --seq 00 --frames 0:20 --source lidar-fov
+    python benchmarks/bench_viewer.py --seq 00 --frames 0:20 --source lidar-fov
 """
 
 from __future__ import annotations
@@ -22,8 +22,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 class CountingObserver:

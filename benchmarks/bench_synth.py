@@ -1,8 +1,8 @@
 """Benchmark synthetic sequence generation (frames/s) and optionally save a preview picture.
 
-    python tools/bench_synth.py --seq 00 --frames 40 --workers 2
-    python tools/bench_synth.py --seq tiny --preview docs/images/synth_frame.png --frame 3
-    python tools/bench_synth.py --seq 00 --frames 20 --compare ~/.cache/mono-map/data/kitti   # same frames?
+    python benchmarks/bench_synth.py --seq 00 --frames 40 --workers 2
+    python benchmarks/bench_synth.py --seq tiny --preview docs/images/synth_frame.png --frame 3
+    python benchmarks/bench_synth.py --seq 00 --frames 20 --compare ~/.cache/mono-map/data/kitti   # same frames?
 
 Generates into a temporary root (never touches ./data), reports end-to-end frames/s
 (town build + worker start-up included), the CPU seconds per frame of the process and its workers
@@ -26,9 +26,7 @@ from pathlib import Path
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-import numpy as np  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import numpy as np
 
 
 def stage_split(recipe, town, frames=3) -> dict:

@@ -1,0 +1,306 @@
+"""Self-supervised adaptation of a depth checkpoint to the sequence being mapped (``mono-map adapt``).
+
+No labels: neighbouring frames of the sequence, warped into frame t through the predicted depth and the
+sequence's own metric poses, must reproduce frame t (monodepth2's loss: SSIM + L1, per-pixel minimum over
+the sources, auto-masking, edge-aware smoothness; :mod:`mono_map.depth.photometric`). The poses fix the
+scale. Sources are chosen by baseline, not frame offset (a stopped car gives no depth signal). Pixels the
+base model calls sky are left out and its probability of "no surface within range" is held to the base
+model's; BatchNorm statistics stay frozen; optionally supervised batches of a synthetic training sequence
+are mixed in (replay, normalised to the photometric term's size). Frames held out from the targets score
+the weights every ``eval_every`` steps (their photometric error): the best are written.
+
+The result is an ordinary checkpoint named ``<base>-adapted-<seq>-<digest>.pt``; the digest covers the base
+checkpoint's sha256, the sequence (data root, name, frames) and every setting. Runs resume from
+``~/.cache/mono-map/adapt/<run>/state.pt`` (the run key leaves out ``steps``: a longer run continues a
+shorter one); batches are drawn from a generator seeded with (seed, step), so a resumed run equals an
+uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from mono_map.errors import MonoMapError
+
+ADAPT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class AdaptConfig:
+    """Settings of an adaptation run (all in the checkpoint's digest)."""
+
+    steps: int = 200
+    lr: float = 5e-5                 # Adam
+    batch_size: int = 4              # target frames per step
+    min_baseline: float = 0.3        # m: a source must be at least this far from the target camera
+    max_baseline: float = 4.0        # m: ... and at most this far
+    max_offset: int = 10             # frames: sources searched up to this many frames before and after
+    smoothness: float = 1e-3         # edge-aware smoothness weight
+    beyond_weight: float = 1.0       # KL of p(no surface) to the base model's
+    sky_threshold: float = 0.5       # base p(no surface) above this: no photometric loss
+    replay: float = 0.0              # weight of supervised replay, relative to the photometric term at step 0
+    replay_seq: str = ""             # synthetic training sequence of the replay ("" = none)
+    replay_frames: int = 40          # replay frames (evenly spread over the replay sequence)
+    eval_every: int = 25             # steps between held-out evaluations (and saved states)
+    loss_scale: int = 2              # photometric loss at 1/loss_scale of the network input (1 or 2)
+    seed: int = 0
+    precision: str = "fp32"          # "bf16": bfloat16 autocast of the network's forward pass
+
+    def validate(self) -> None:
+        checks = [(self.steps >= 1, "--steps", f"must be >= 1, got {self.steps}"),
+                  (self.lr > 0 and np.isfinite(self.lr), "--lr", f"must be a positive number, got {self.lr}"),
+                  (self.batch_size >= 1, "--batch-size", f"must be >= 1, got {self.batch_size}"),
+                  (self.min_baseline >= 0, "--min-baseline", f"must be >= 0 m, got {self.min_baseline}"),
+                  (self.max_baseline > self.min_baseline, "--max-baseline",
+                   f"must exceed --min-baseline ({self.min_baseline} m), got {self.max_baseline}"),
+                  (self.max_offset >= 1, "max_offset", f"must be >= 1, got {self.max_offset}"),
+                  (self.replay >= 0, "--replay", f"must be >= 0, got {self.replay}"),
+                  (not self.replay or bool(self.replay_seq), "--replay", "needs --replay-seq (a synthetic training sequence)"),
+                  (self.replay_seq != "00", "--replay-seq", "00 is the held-out evaluation sequence, never trained on"),
+                  (self.loss_scale in (1, 2, 4), "loss_scale", f"must be 1, 2 or 4, got {self.loss_scale}"),
+                  (self.eval_every >= 1, "eval_every", f"must be >= 1, got {self.eval_every}"),
+                  (self.precision in ("fp32", "bf16"), "--precision", f"must be fp32 or bf16, got {self.precision}")]
+        for ok, option, why in checks:
+            if not ok:
+                raise MonoMapError(f"{option}: {why}")
+
+    def run_settings(self) -> dict:
+        """Everything but ``steps``: what a longer run shares with a shorter one."""
+        d = asdict(self)
+        d.pop("steps")
+        return d
+
+
+# ------------------------------------------------------------------ sources
+def choose_sources(positions: np.ndarray, min_baseline: float, max_baseline: float, max_offset: int
+                   ) -> dict[int, list[int]]:
+    """For every frame j (rows of ``positions``, camera centres in metres) the nearest frame before and the
+    nearest after (within ``max_offset`` positions of the list) whose baseline lies in
+    [min_baseline, max_baseline]; frames with no such neighbour are left out."""
+    n = len(positions)
+    out = {}
+    for j in range(n):
+        found = []
+        for direction in (-1, 1):
+            for k in range(1, max_offset + 1):
+                i = j + direction * k
+                if not 0 <= i < n:
+                    break
+                b = float(np.linalg.norm(positions[i] - positions[j]))
+                if b > max_baseline:
+                    break
+                if b >= min_baseline:
+                    found.append(i)
+                    break
+        if found:
+            out[j] = found
+    return out
+
+
+def held_out(targets: list[int]) -> list[int]:
+    """Targets kept for the stopping rule: every 10th (from the 5th), or the middle one of 3–9, none of < 3."""
+    if len(targets) >= 10:
+        return targets[5::10]
+    return [targets[len(targets) // 2]] if len(targets) >= 3 else []
+
+
+# ------------------------------------------------------------------ data
+def resize_to_input(image: np.ndarray, H: int, W: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """RGB uint8 -> (H×W×3 uint8 fitted with the aspect kept and edge-padded, as inference does; (fh, fw))."""
+    import cv2
+
+    from mono_map.depth.inference import fit_size
+
+    h, w = image.shape[:2]
+    fh, fw = fit_size(h, w, H, W)
+    r = cv2.resize(image, (fw, fh), interpolation=cv2.INTER_AREA) if (fh, fw) != (h, w) else image
+    return np.pad(r, ((0, H - fh), (0, W - fw), (0, 0)), mode="edge"), (fh, fw)
+
+
+@dataclass
+class SequenceFrames:
+    """The frames of an adaptation in the network's input size: images (N,H,W,3) uint8, K (3,3) of these
+    images, poses T_world_cam2 (N,4,4), the content size (fh, fw) (the rest is padding), frame indices."""
+
+    images: np.ndarray
+    K: np.ndarray
+    poses: np.ndarray
+    content: tuple[int, int]
+    indices: list[int]
+
+
+def load_frames(seq, indices: list[int], H: int, W: int, desc: str = "adapt: read") -> SequenceFrames:
+    """Read image_2 and T_world_cam2 of ``indices`` of a sequence (any layout the reader opens)."""
+    from mono_map.progress import progress
+
+    imgs, content = [], None
+    for i in progress(indices, total=len(indices), desc=desc, unit="frame"):
+        im, content = resize_to_input(seq.image(i), H, W)
+        imgs.append(im)
+    h, w = seq.image_size
+    K = seq.calib.K2.copy()
+    K[0] *= content[1] / w
+    K[1] *= content[0] / h
+    poses = np.stack([seq.T_world_cam2(i) for i in indices])
+    return SequenceFrames(np.stack(imgs), K, poses, content, list(indices))
+
+
+# ------------------------------------------------------------------ the run
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def run_key(base_sha: str, data_root: Path, seq: str, frames: list[int], cfg: AdaptConfig) -> dict:
+    return {"version": ADAPT_VERSION, "base_sha256": base_sha, "data_root": str(Path(data_root).resolve()),
+            "sequence": seq, "frames": frames, "settings": cfg.run_settings()}
+
+
+def digest(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def default_state_dir() -> Path:
+    return Path(os.environ.get("MONO_MAP_CACHE", Path.home() / ".cache" / "mono-map")).expanduser() / "adapt"
+
+
+@dataclass(frozen=True)
+class AdaptResult:
+    checkpoint: Path
+    metadata: dict
+
+
+def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptConfig = AdaptConfig(),
+          out_dir: str | os.PathLike = "outputs/adapt", state_dir: str | os.PathLike | None = None,
+          resume: bool = True, replay_root=None, log=print) -> AdaptResult:
+    """Adapt checkpoint ``base`` (path or shipped name; None = the shipped model) to sequence ``seq_name``
+    under ``data_root`` on ``frames`` (a FrameSelection; None = all) and write the best checkpoint to
+    ``out_dir``. Every input is checked before any work; MonoMapError names the bad one."""
+    import torch
+
+    from mono_map.data.prepare import prepare_sequence
+    from mono_map.depth.adapter import Adapter, base_beyond_probs, copy_state, save_state
+    from mono_map.depth.inference import default_checkpoint, load_checkpoint, save_checkpoint
+    from mono_map.io import write_json_atomic
+    from mono_map.progress import progress
+
+    cfg.validate()
+    path = Path(base) if base is not None else default_checkpoint("binary")
+    if base is not None and not path.suffix and not path.exists():
+        path = default_checkpoint(str(base))
+    model, payload = load_checkpoint(path)
+    if model.head.kind != "bins" or model.head.dropout:
+        raise MonoMapError(f"--model: {path}: a '{model.cfg.head}' head; adapt needs a bin distribution "
+                           "(binary or softmax head) whose expected depth it can warp with")
+    seq = prepare_sequence(data_root, seq_name, frames)
+    if seq.poses_cam0 is None:
+        raise MonoMapError(f"{seq.pose_path}: no poses for sequence '{seq_name}'; adapt needs the sequence's "
+                           "metric poses")
+    indices = frames.resolve(len(seq)) if frames is not None else list(range(len(seq)))
+    if len(indices) < 2:
+        raise MonoMapError(f"--frames: adapt needs at least 2 frames of a moving camera, got {len(indices)}")
+    centres = np.stack([seq.T_world_cam2(i)[:3, 3] for i in indices])
+    sources = choose_sources(centres, cfg.min_baseline, cfg.max_baseline, cfg.max_offset)
+    if not sources:
+        steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+        raise MonoMapError(f"{seq.path}: too little motion to adapt: no two frames within {cfg.max_offset} frames "
+                           f"are {cfg.min_baseline:g}–{cfg.max_baseline:g} m apart (largest step between frames "
+                           f"{steps.max():.3f} m; lower --min-baseline or choose other --frames)")
+    replay_seq = None
+    if cfg.replay > 0:
+        replay_seq = prepare_sequence(replay_root or data_root, cfg.replay_seq)
+        if not replay_seq.velodyne_files:
+            raise MonoMapError(f"--replay-seq: {replay_seq.path}: no velodyne scans for supervised replay")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise MonoMapError(f"--out: {out_dir} is a file, not a directory")
+
+    base_sha = sha256_file(path)
+    key = run_key(base_sha, seq.root, seq_name, indices, cfg)
+    run_id = digest(key)
+    name = f"{path.stem}-adapted-{seq_name}-{digest({**key, 'steps': cfg.steps})}"
+    ckpt = out_dir / f"{name}.pt"
+    if resume and ckpt.is_file() and (out_dir / f"{name}.json").is_file():
+        log(f"adapt: {ckpt} is up to date (same base, sequence, frames and settings)")
+        return AdaptResult(ckpt, json.loads((out_dir / f"{name}.json").read_text()))
+
+    H, W = model.cfg.input_height, model.cfg.input_width
+    data = load_frames(seq, indices, H, W)
+    targets = sorted(sources)
+    heldout = held_out(targets)
+    base_beyond = None
+    if model.cfg.beyond:
+        base_beyond = base_beyond_probs(model, data.images, cfg.precision)
+    replay = load_replay(replay_seq, H, W, cfg.replay_frames) if replay_seq is not None else None
+    adapter = Adapter(model, base_beyond, data, sources, cfg, replay)
+    adapter.train_targets = [t for t in targets if t not in heldout] or targets
+
+    state_path = Path(state_dir or default_state_dir()) / run_id / "state.pt"
+    start, curve, best = 0, [], {"error": float("inf"), "step": 0, "state": None}
+    if resume and state_path.is_file():
+        st = torch.load(state_path, weights_only=False)
+        if st["step"] <= cfg.steps:
+            model.load_state_dict(st["model"])
+            adapter.optimizer.load_state_dict(st["optimizer"])
+            start, curve, best, adapter.replay_scale = st["step"], st["curve"], st["best"], st.get("replay_scale")
+            log(f"adapt: resuming {run_id} at step {start}")
+        else:
+            log(f"adapt: the saved run {run_id} is at step {st['step']} > --steps {cfg.steps}; starting again")
+    if start == 0:
+        err = adapter.heldout_error(heldout)
+        curve = [{"step": 0, "heldout_photometric": err}]
+        best = {"error": err, "step": 0, "state": copy_state(model)}
+
+    t0 = time.perf_counter()
+    losses = []
+    for step in progress(range(start, cfg.steps), total=cfg.steps - start, desc="adapt", unit="step"):
+        losses.append(adapter.step(step))
+        done = step + 1
+        if done % cfg.eval_every == 0 or done == cfg.steps:
+            err = adapter.heldout_error(heldout) if heldout else float("nan")
+            recent = losses[-cfg.eval_every:]
+            curve.append({"step": done, "heldout_photometric": err,
+                          "train_photometric": float(np.mean([r["photometric"] for r in recent])),
+                          "used_pixels": float(np.mean([r["used"] for r in recent]))})
+            if not heldout or err < best["error"]:
+                best = {"error": err, "step": done, "state": copy_state(model)}
+            save_state(state_path, {"step": done, "model": model.state_dict(), "optimizer": adapter.optimizer.state_dict(),
+                                    "curve": curve, "best": best, "replay_scale": adapter.replay_scale})
+    wall = time.perf_counter() - t0
+
+    model.load_state_dict(best["state"])
+    meta = {"name": name, "adapted": {
+        "base": str(path), "base_sha256": base_sha, "sequence": seq_name, "data_root": str(seq.root),
+        "frames": indices, "targets": len(targets), "heldout": heldout, "settings": asdict(cfg),
+        "best_step": best["step"], "curve": curve, "wall_time_s_this_run": round(wall, 1), "run_id": run_id},
+        "steps": cfg.steps, "base_training": payload.get("training", {})}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(ckpt, model.eval(), training=meta)
+    write_json_atomic(out_dir / f"{name}.json", {**meta, "checkpoint": ckpt.name, "sha256": sha256_file(ckpt)})
+    return AdaptResult(ckpt, meta)
+
+
+def load_replay(seq, H: int, W: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` frames spread over a synthetic training sequence: (images (n,H,W,3) uint8, LiDAR depth (n,H,W) m,
+    0 = none) in the network's input size."""
+    from mono_map.depth.train import downsample_depth
+    from mono_map.progress import progress
+
+    idx = np.unique(np.linspace(0, len(seq) - 1, min(n, len(seq))).round().astype(int))
+    imgs, deps = [], []
+    for i in progress(idx.tolist(), total=len(idx), desc="adapt: replay", unit="frame"):
+        im, (fh, fw) = resize_to_input(seq.image(i), H, W)
+        d = np.zeros((H, W), np.float32)
+        d[:fh, :fw] = downsample_depth(seq.lidar_depth(i), fh, fw)
+        imgs.append(im)
+        deps.append(d)
+    return np.stack(imgs), np.stack(deps)

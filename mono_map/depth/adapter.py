@@ -1,0 +1,192 @@
+"""The machinery of one adaptation step (:mod:`mono_map.depth.adapt` runs it): the network's expected depth at
+stride 4, monodepth2's photometric loss through the known poses (:mod:`mono_map.depth.photometric`), the hold of
+p(no surface) to the base model, the normalised supervised replay."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from mono_map.depth import photometric
+
+
+def to_tensor(images: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
+
+
+# ------------------------------------------------------------------ the adapter
+class Adapter:
+    """Fine-tunes ``model`` on ``frames`` with photometric reprojection; ``step`` is the algorithm."""
+
+    def __init__(self, model, base_beyond: torch.Tensor | None, frames: SequenceFrames,
+                 sources: dict[int, list[int]], cfg: AdaptConfig, replay: tuple | None = None):
+        self.model, self.cfg, self.frames, self.sources = model, cfg, frames, sources
+        self.bins = model.cfg.bins
+        self.head = model.head
+        self.beyond = model.cfg.beyond
+        self.base_beyond = base_beyond        # (N,1,h4,w4) base p(no surface) at stride 4, or None
+        self.replay = replay                  # (images (R,H,W,3) uint8, LiDAR depth (R,H,W) m) or None
+        self.replay_scale = None              # photometric / supervised loss of the base model (step 0)
+        # the photometric loss is computed at 1/loss_scale of the network input (the depth is stride 4 anyway)
+        sc = cfg.loss_scale
+        self.small = downsample_images(frames.images, sc)
+        H, W = self.small.shape[1:3]
+        self.content = torch.zeros(1, 1, H, W, dtype=torch.bool)
+        self.content[..., :frames.content[0] // sc, :frames.content[1] // sc] = True
+        self.K = torch.as_tensor(scale_intrinsics(frames.K, sc), dtype=torch.float32)
+        self.train_targets = sorted(sources)  # the run sets them without its held-out frames
+        self.optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
+        freeze_batchnorm(model)
+
+    # --- pieces
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Raw head outputs at the decoder's stride 4 (B,C,H/4,W/4), float32."""
+        x = x.contiguous(memory_format=torch.channels_last)
+        if self.cfg.precision == "bf16":
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                return self.model(x, upsample=False).float()
+        return self.model(x, upsample=False)
+
+    def depth_and_beyond(self, low: torch.Tensor, size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(expected depth (B,1,H,W) m at ``size``, log-space expectation; beyond logit at stride 4 or None)."""
+        from mono_map.depth.distribution import expected_depth
+        from mono_map.depth.heads import split_beyond
+
+        x, beyond_logit = split_beyond(self.head, low, self.bins, self.beyond)
+        depth = expected_depth(torch.softmax(x[:, :self.bins.num_bins], 1), self.bins, "log").unsqueeze(1)
+        depth = F.interpolate(depth, size=size, mode="bilinear", align_corners=False)
+        return depth.clamp(self.bins.min_depth, self.bins.max_depth), beyond_logit
+
+    def batch(self, targets: list[int]):
+        """Network inputs (B,3,H,W); at the loss resolution the targets, two sources each (one side repeated if
+        only one exists), their poses T_src_tgt (B,4,4) and the pixels that count (content, not sky)."""
+        f = self.frames
+        x = to_tensor(f.images[targets])
+        tgt = to_tensor(self.small[targets])
+        srcs = [[self.sources[t][0], self.sources[t][-1]] for t in targets]
+        sources = [to_tensor(self.small[[s[k] for s in srcs]]) for k in (0, 1)]
+        poses = [torch.as_tensor(np.stack([np.linalg.inv(f.poses[s[k]]) @ f.poses[t] for s, t in zip(srcs, targets)]),
+                                 dtype=torch.float32) for k in (0, 1)]
+        mask = self.content.expand(len(targets), 1, *tgt.shape[-2:])
+        if self.base_beyond is not None:
+            sky = F.interpolate(self.base_beyond[targets], size=tgt.shape[-2:], mode="nearest") > self.cfg.sky_threshold
+            mask = mask & ~sky
+        return x, tgt, sources, poses, mask
+
+    def photometric_loss(self, targets: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
+        x, tgt, sources, poses, mask = self.batch(targets)
+        low = self.forward(x)
+        depth, beyond_logit = self.depth_and_beyond(low, tgt.shape[-2:])
+        K = self.K.expand(len(targets), 3, 3)
+        photo, used = photometric.reprojection_loss(tgt, sources, depth, K, poses, mask=mask)
+        smooth = photometric.smoothness_loss(depth, tgt)
+        return photo, smooth, beyond_logit, {"used": float(used.float().mean())}
+
+    def beyond_loss(self, beyond_logit: torch.Tensor | None, targets: list[int]) -> torch.Tensor:
+        """KL(base ‖ current) of the Bernoulli "no surface within range", mean over pixels: 0 at the base."""
+        if beyond_logit is None or self.base_beyond is None or not self.cfg.beyond_weight:
+            return torch.zeros(())
+        p = self.base_beyond[targets, 0].clamp(1e-4, 1 - 1e-4)
+        bce = F.binary_cross_entropy_with_logits(beyond_logit, p, reduction="none")
+        ent = -(p * p.log() + (1 - p) * (1 - p).log())
+        return (bce - ent).mean()
+
+    def replay_loss(self, rng: np.random.Generator) -> torch.Tensor:
+        """The supervised loss of the model's head on ``batch_size`` replay frames (LiDAR targets)."""
+        from mono_map.depth.losses import head_loss
+        from mono_map.depth.train import outputs_at_targets
+
+        images, depths = self.replay
+        pick = rng.integers(len(images), size=self.cfg.batch_size)
+        low = self.forward(to_tensor(images[pick]))
+        out, dep = outputs_at_targets(low, torch.as_tensor(depths[pick]))
+        return head_loss(self.head, out, dep, self.bins, beyond=self.beyond)
+
+    # --- the algorithm
+    def step(self, step: int) -> dict:
+        """One step: draw targets, warp their sources through the predicted depth with the known poses,
+        minimise photometric error + smoothness + the beyond-range hold (+ normalised replay)."""
+        rng = np.random.default_rng([self.cfg.seed, step])
+        train = self.train_targets
+        targets = [train[k] for k in rng.choice(len(train), size=min(self.cfg.batch_size, len(train)), replace=False)]
+        self.model.train()
+        freeze_batchnorm(self.model)
+        photo, smooth, beyond_logit, info = self.photometric_loss(targets)
+        loss = photo + self.cfg.smoothness * smooth + self.cfg.beyond_weight * self.beyond_loss(beyond_logit, targets)
+        rep = torch.zeros(())
+        if self.replay is not None and self.cfg.replay > 0:
+            rep = self.replay_loss(rng)
+            if self.replay_scale is None:   # the replay term starts at ``replay`` × the photometric term
+                self.replay_scale = float(photo.detach()) / max(float(rep.detach()), 1e-9)
+            loss = loss + self.cfg.replay * self.replay_scale * rep
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return {"loss": float(loss.detach()), "photometric": float(photo.detach()), "smoothness": float(smooth.detach()),
+                "replay": float(rep.detach()), **info}
+
+    @torch.no_grad()
+    def heldout_error(self, targets: list[int]) -> float:
+        """Mean photometric loss over held-out targets (the stopping rule; no ground truth)."""
+        self.model.eval()
+        errs = [float(self.photometric_loss([t])[0]) for t in targets]
+        return float(np.mean(errs)) if errs else float("nan")
+
+
+def downsample_images(images: np.ndarray, factor: int) -> np.ndarray:
+    """(N,H,W,3) uint8 -> (N,H/factor,W/factor,3) uint8 by area averaging (factor 1: unchanged)."""
+    if factor == 1:
+        return images
+    import cv2
+
+    N, H, W = images.shape[:3]
+    return np.stack([cv2.resize(im, (W // factor, H // factor), interpolation=cv2.INTER_AREA) for im in images])
+
+
+def scale_intrinsics(K: np.ndarray, factor: int) -> np.ndarray:
+    """Intrinsics of an image shrunk ``factor`` times (pixel centres at integer coordinates)."""
+    K = np.array(K, dtype=np.float64)
+    K[0, 0] /= factor
+    K[1, 1] /= factor
+    K[0, 2] = (K[0, 2] + 0.5) / factor - 0.5
+    K[1, 2] = (K[1, 2] + 0.5) / factor - 0.5
+    return K
+
+
+def freeze_batchnorm(model) -> None:
+    """BatchNorm layers use and keep the base model's running statistics (eval mode), still trainable."""
+    for m in model.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.eval()
+
+
+def copy_state(model) -> dict:
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def save_state(path: Path, state: dict) -> None:
+    from mono_map.io import atomic_path
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+@torch.no_grad()
+def base_beyond_probs(model, images: np.ndarray, precision: str, chunk: int = 8) -> torch.Tensor:
+    """The base model's p(no surface within range) at stride 4, (N,1,H/4,W/4)."""
+    from mono_map.depth.heads import split_beyond
+
+    model.eval()
+    out = []
+    for k in range(0, len(images), chunk):
+        x = to_tensor(images[k:k + chunk]).contiguous(memory_format=torch.channels_last)
+        if precision == "bf16":
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                low = model(x, upsample=False).float()
+        else:
+            low = model(x, upsample=False)
+        _, logit = split_beyond(model.head, low, model.cfg.bins, True)
+        out.append(torch.sigmoid(logit).unsqueeze(1))
+    return torch.cat(out)

@@ -1,0 +1,163 @@
+"""mono-map adapt: the photometric warp, its scale, auto-masking, sources by baseline, determinism, resume,
+bad inputs."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from mono_map.cli import main as cli_main
+from mono_map.depth import photometric as ph
+from mono_map.depth.adapt import AdaptConfig, adapt, choose_sources, held_out
+from mono_map.depth.inference import load_checkpoint, save_checkpoint
+from mono_map.depth.networks import DepthNet, named_config
+from mono_map.errors import MonoMapError
+from mono_map.frames import parse_frames
+
+TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),
+            num_bins=16, input_height=64, input_width=192, beyond=True)
+
+
+@pytest.fixture
+def tiny_ckpt(tmp_path):
+    torch.manual_seed(0)
+    path = tmp_path / "tinynet.pt"
+    save_checkpoint(path, DepthNet(named_config("small", **TINY)), {"step": 0})
+    return path
+
+
+@pytest.fixture(scope="module")
+def pair(tiny_root):
+    """Frames 1 (target) and 2 (source) of tiny at 1/4 resolution: images, true depth, K, T_src_tgt."""
+    import cv2
+
+    from mono_map.data.kitti import open_sequence
+
+    seq = open_sequence(tiny_root, "tiny")
+    h, w = seq.image_size
+    s = 4
+    size = (w // s, h // s)
+
+    def img(i):
+        return torch.from_numpy(cv2.resize(seq.image(i), size, interpolation=cv2.INTER_AREA)).permute(2, 0, 1)[None].float() / 255
+
+    d = cv2.resize(seq.depth(1), size, interpolation=cv2.INTER_NEAREST)
+    d = np.where(d > 0, d, 1000.0)   # sky: far away
+    K = seq.calib.K2.copy()
+    K[0] *= size[0] / w
+    K[1] *= size[1] / h
+    T = np.linalg.inv(seq.T_world_cam2(2)) @ seq.T_world_cam2(1)
+    return (img(1), img(2), torch.from_numpy(d)[None, None].float(), torch.as_tensor(K)[None].float(),
+            torch.as_tensor(T)[None].float())
+
+
+def loss_of(target, source, depth, K, T, automask=False):
+    return float(ph.reprojection_loss(target, [source], depth, K, [T], automask=automask)[0])
+
+
+def test_true_depth_and_pose_reconstruct_the_target(pair):
+    tgt, src, depth, K, T = pair
+    true = loss_of(tgt, src, depth, K, T)
+    unwarped = float(ph.photometric_error(src, tgt).mean())
+    assert true < 0.75 * unwarped     # the warp explains most of the change between the frames
+    for wrong in (depth * 0.5, depth * 2.0, torch.full_like(depth, 10.0)):
+        assert loss_of(tgt, src, wrong, K, T) > true * 1.15
+
+
+def test_scale_comes_from_the_poses(pair):
+    tgt, src, depth, K, T = pair
+    T2 = T.clone()
+    T2[:, :3, 3] *= 2
+    base = loss_of(tgt, src, depth, K, T)
+    assert abs(loss_of(tgt, src, depth * 2, K, T2) - base) < 1e-4     # depth ×2 with translation ×2: same
+    assert loss_of(tgt, src, depth * 2, K, T) > base * 1.15           # depth ×2 alone: worse
+
+
+def test_identity_pose_reproduces_the_image_and_automask_masks_a_static_camera(pair):
+    tgt, _, depth, K, _ = pair
+    warped, valid = ph.warp(tgt, depth, K, torch.eye(4)[None])
+    assert valid.all() and (warped - tgt).abs().max() < 1e-4
+    loss, used = ph.reprojection_loss(tgt, [tgt.clone()], depth, K, [torch.eye(4)[None]])
+    assert used.sum() == 0 and float(loss) == 0.0
+
+
+def test_sources_by_baseline_not_offset():
+    # a car that stops for frames 2-5: 1 m steps, then 0.01 m steps, then 1 m steps
+    x = np.concatenate([[0, 1, 2], 2 + 0.01 * np.arange(1, 4), [3.03, 4.03]])
+    pos = np.stack([x, 0 * x, 0 * x], 1)
+    src = choose_sources(pos, 0.3, 4.0, 10)
+    assert src[0] == [1] and src[1] == [0, 2]
+    assert src[3] == [1, 6]           # the stopped frames look past the stop
+    assert all(abs(x[i] - x[j]) >= 0.3 for j, s in src.items() for i in s)
+    assert 0 not in choose_sources(pos, 0.3, 0.5, 10)     # no neighbour within 0.3-0.5 m
+    assert held_out(list(range(20))) == [5, 15] and held_out([1, 2]) == []
+
+
+def run(tiny_root, ckpt, tmp_path, steps, state, out, **kw):
+    cfg = AdaptConfig(steps=steps, batch_size=2, eval_every=1, seed=kw.pop("seed", 0), **kw)
+    return adapt(str(ckpt), tiny_root, "tiny", None, cfg, out_dir=tmp_path / out, state_dir=tmp_path / state,
+                 log=lambda m: None)
+
+
+def last_weights(state_dir):
+    st = torch.load(next(state_dir.glob("*/state.pt")), weights_only=False)
+    return st["step"], st["model"]
+
+
+def test_adapt_is_deterministic_resumes_and_names_its_settings(tiny_root, tiny_ckpt, tmp_path):
+    a = run(tiny_root, tiny_ckpt, tmp_path, 3, "sa", "oa")
+    b = run(tiny_root, tiny_ckpt, tmp_path, 3, "sb", "ob")
+    assert a.checkpoint.name == b.checkpoint.name and a.checkpoint.name.startswith("tinynet-adapted-tiny-")
+    ma, _ = load_checkpoint(a.checkpoint)
+    mb, _ = load_checkpoint(b.checkpoint)
+    assert all(torch.equal(x, y) for x, y in zip(ma.state_dict().values(), mb.state_dict().values()))
+    base, _ = load_checkpoint(tiny_ckpt)
+    step_a, wa = last_weights(tmp_path / "sa")
+    assert step_a == 3 and not all(torch.equal(wa[k], v) for k, v in base.state_dict().items())
+    # 2 steps, then the same run asked for 3 resumes at 2: the same weights as 3 in one go
+    run(tiny_root, tiny_ckpt, tmp_path, 2, "sc", "oc")
+    c = run(tiny_root, tiny_ckpt, tmp_path, 3, "sc", "oc")
+    step_c, wc = last_weights(tmp_path / "sc")
+    assert step_c == 3 and all(torch.equal(wa[k], wc[k]) for k in wa)
+    assert c.checkpoint.name == a.checkpoint.name
+    meta = json.loads(c.checkpoint.with_suffix(".json").read_text())
+    assert meta["adapted"]["sequence"] == "tiny" and meta["steps"] == 3 and len(meta["adapted"]["curve"]) == 4
+    # other settings, another seed or other frames: another name
+    d = run(tiny_root, tiny_ckpt, tmp_path, 3, "sd", "od", lr=1e-4)
+    e = run(tiny_root, tiny_ckpt, tmp_path, 3, "se", "oe", seed=1)
+    assert len({a.checkpoint.name, d.checkpoint.name, e.checkpoint.name}) == 3
+
+
+def test_the_adapted_checkpoint_predicts(tiny_root, tiny_ckpt, tmp_path):
+    res = run(tiny_root, tiny_ckpt, tmp_path, 1, "s", "o")
+    out = tmp_path / "pred"
+    assert cli_main(["predict", "--seq", "tiny", "--data-root", str(tiny_root), "--frames", "0:2",
+                     "--model", str(res.checkpoint), "--out", str(out)]) == 0
+    assert len(list((out / "depth").glob("*.png"))) == 2
+
+
+def test_bad_inputs_one_line(tiny_root, tiny_ckpt, tmp_path, capsys):
+    base = ["adapt", "--seq", "tiny", "--data-root", str(tiny_root), "--out", str(tmp_path / "o"), "--steps", "1"]
+    torch.manual_seed(0)
+    gauss = tmp_path / "gauss.pt"
+    save_checkpoint(gauss, DepthNet(named_config("small", **{**TINY, "head": "gaussian"})), {})
+    no_poses = tmp_path / "noposes"
+    shutil.copytree(tiny_root, no_poses)
+    (no_poses / "poses" / "tiny.txt").unlink()
+    cases = [(["--model", str(tiny_ckpt), "--frames", "1"], "at least 2 frames"),
+             (["--model", str(gauss)], "gaussian"),
+             (["--model", str(tiny_ckpt), "--min-baseline", "3.9"], "too little motion"),
+             (["--model", str(tiny_ckpt), "--steps", "0"], "--steps"),
+             (["--model", str(tiny_ckpt), "--replay", "0.5"], "--replay-seq"),
+             (["--model", str(tiny_ckpt), "--max-baseline", "0.1"], "--max-baseline"),
+             (["--model", str(tiny_ckpt), "--data-root", str(no_poses)], "no poses")]
+    for extra, words in cases:
+        capsys.readouterr()
+        assert cli_main(base + extra) == 2, extra
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], (extra, err)
+    assert not (tmp_path / "o").exists() or not list((tmp_path / "o").glob("*.pt"))
+    with pytest.raises(MonoMapError, match="00 is the held-out"):
+        AdaptConfig(replay=1.0, replay_seq="00").validate()
