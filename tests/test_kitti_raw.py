@@ -185,7 +185,8 @@ def ckpt(tmp_path_factory):
     return path
 
 
-def test_every_command_on_a_raw_drive(raw_root, tmp_path, capsys, ckpt):
+def test_every_command_on_a_raw_drive(raw_root, tmp_path, capsys, ckpt, monkeypatch):
+    monkeypatch.setenv("MONO_MAP_CACHE", str(tmp_path / "cache"))   # adapt's resumable state
     R, out = str(raw_root), tmp_path / "out"
     common = ["--seq", DRIVE, "--data-root", R]
     assert cli_main(["predict", *common, "--frames", "0:2", "--model", str(ckpt), "--out", str(out / "p")]) == 0
@@ -200,6 +201,8 @@ def test_every_command_on_a_raw_drive(raw_root, tmp_path, capsys, ckpt):
     assert cli_main(["eval", "--map", str(out / "m" / "gt.bt"), "--reference", str(out / "m" / "ref.bt")]) == 0
     assert cli_main(["eval", "--table", *common, "--frames", "0:2", "--res", "0.4", "--model", "oracle",
                      "--stride", "8", "--keeps", "0.8,1.0", "--out", str(out / "t")]) == 0
+    assert cli_main(["adapt", *common, "--model", str(ckpt), "--steps", "1", "--out", str(out / "a")]) == 0
+    (adapted,) = (out / "a").glob(f"*-adapted-{DRIVE}-*.pt")
     assert cli_main(["view", str(out / "r.rrd"), "--save", str(out / "v.rrd")]) == 0
     assert (out / "v.rrd").stat().st_size > 0
     capsys.readouterr()
