@@ -439,3 +439,26 @@ def test_depth_gt_on_a_real_raw_drive_one_line(real01_raw, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "depth_02/data" in err[0], err
     assert not out.exists()
+
+
+def test_a_raw_drive_fingerprints_like_its_odometry_twin(raw_root):
+    """Outputs are keyed by what the frames hold: a raw drive's fingerprint has the same parts, its dense
+    depth (depth_02/data) included; editing a depth file changes it."""
+    from mono_map.data.fingerprint import sequence_fingerprint
+
+    odo, raw = open_sequence(raw_root, "tiny"), open_sequence(raw_root, DRIVE)
+    fo, fr = sequence_fingerprint(odo, range(6)), sequence_fingerprint(raw, range(6))
+    assert set(fr) == set(fo) and "depth" in fr
+
+
+def test_editing_a_raw_drives_depth_changes_its_fingerprint(raw_root, tmp_path):
+    from mono_map.data.fingerprint import sequence_fingerprint
+
+    root = tmp_path / "r"
+    shutil.copytree(raw_root / DATE, root / DATE, copy_function=os.link)
+    before = sequence_fingerprint(open_sequence(root, DRIVE), range(6))
+    f = root / drive_file("depth_02/data/0000000003.png")
+    replace(f, f.read_bytes())
+    os.utime(f, ns=(1, 1))
+    after = sequence_fingerprint(open_sequence(root, DRIVE), range(6))
+    assert [k for k in after if after[k] != before[k]] == ["depth"]
