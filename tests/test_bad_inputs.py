@@ -11,6 +11,7 @@ sequence (tests/conftest.py).
 from __future__ import annotations
 
 import json
+import re
 import os
 import shutil
 import signal
@@ -77,6 +78,9 @@ class Ctx:
 
     def fill(self, argv: list[str]) -> list[str]:
         return [a.format(tmp=self.tmp, data=self.data, out=self.out) for a in argv]
+
+    def fill_env(self, env: dict) -> dict:
+        return {k: v.format(tmp=self.tmp, data=self.data, out=self.out) for k, v in env.items()}
 
 
 @pytest.fixture(scope="session")
@@ -191,6 +195,89 @@ def bt_truncated(c: Ctx) -> None:
 
 def rrd_truncated(c: Ctx) -> None:
     replace(c.good_rrd, c.good_rrd.read_bytes()[: c.good_rrd.stat().st_size // 2])
+
+
+# ------------------------------------------------------------------------------------------ reliability 3 helpers
+
+_TINY_NET = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8), num_bins=16,
+                 input_height=64, input_width=192)
+_PAYLOAD: dict = {}
+
+
+def tiny_payload() -> dict:
+    """A small, valid checkpoint payload (made once per session) to corrupt field by field."""
+    import io
+
+    import torch
+
+    from mono_map.depth.inference import save_checkpoint
+    from mono_map.depth.networks import DepthNet, named_config
+
+    if not _PAYLOAD:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as d:
+            torch.manual_seed(0)
+            save_checkpoint(Path(d) / "t.pt", DepthNet(named_config("small", **_TINY_NET)), {"step": 0})
+            _PAYLOAD["bytes"] = (Path(d) / "t.pt").read_bytes()
+    return torch.load(io.BytesIO(_PAYLOAD["bytes"]), weights_only=True)
+
+
+def checkpoint_with(config_keys: dict | None = None, **top) -> Callable[[Ctx], None]:
+    """Setup: ``{tmp}/bad.pt``, the tiny checkpoint with ``config_keys`` of its model_config (None value:
+    removed) and top-level entries replaced."""
+    def setup(c: Ctx) -> None:
+        import torch
+
+        payload = tiny_payload()
+        for k, v in (config_keys or {}).items():
+            if v is None:
+                payload["model_config"].pop(k)
+            else:
+                payload["model_config"][k] = v
+        payload.update(top)
+        torch.save(payload, c.tmp / "bad.pt")
+    return setup
+
+
+def run_config(text: str, name: str = "run.toml") -> Callable[[Ctx], None]:
+    """Setup: a training config ``{tmp}/<name>`` whose work folder is under {tmp} (``{work}`` in ``text``)."""
+    def setup(c: Ctx) -> None:
+        replace(c.tmp / name, text.replace("{work}", str(c.tmp / "work")))
+    return setup
+
+
+GOOD_RUN = 'name = "r"\n[model]\narch = "small"\n[train]\nwork_dir = "{work}"\n'
+TRAIN = ["train", "--config", "{tmp}/run.toml", "--data-root", "{data}"]
+CKPT = M + ["--model", "{tmp}/bad.pt"]
+
+
+def pose_line(c: Ctx, lineno: int, T: np.ndarray) -> None:
+    lines = pose_lines(c)
+    lines[lineno - 1] = " ".join(f"{v:.9e}" for v in T[:3].reshape(-1))
+    replace(poses(c), "\n".join(lines) + "\n")
+
+
+def reflect_pose(c: Ctx) -> None:
+    T = np.array([float(v) for v in pose_lines(c)[2].split()] + [0, 0, 0, 1]).reshape(4, 4)
+    T[:3, 2] *= -1  # a mirrored z axis: orthonormal, determinant -1
+    pose_line(c, 3, T)
+
+
+def png_bytes(c: Ctx, i: int) -> bytes:
+    return seq_file(c, f"image_2/{i:06d}.png").read_bytes()
+
+
+def flip_png_byte(c: Ctx) -> None:
+    data = bytearray(png_bytes(c, 1))
+    data[len(data) // 2] ^= 0xFF
+    replace(seq_file(c, "image_2/000001.png"), bytes(data))
+
+
+def folder_at(rel: str) -> Callable[[Ctx], None]:
+    def setup(c: Ctx) -> None:
+        (c.tmp / rel).mkdir(parents=True)
+    return setup
 
 
 CASES = [
@@ -310,12 +397,98 @@ CASES = [
     Case("model-truncated", M + ["--model", "{tmp}/trunc.pt"], "trunc.pt", truncated_checkpoint),
     Case("model-text", M + ["--model", "{tmp}/text.pt"], "text.pt", write("text.pt", "not a checkpoint\n")),
     Case("table-model-truncated", TABLE + ["--model", "{tmp}/trunc.pt"], "trunc.pt", truncated_checkpoint),
+    # ---- reliability 3: checkpoint metadata typed where it enters (one line naming file and key)
+    Case("ckpt-num-bins-string", CKPT, "bad.pt model_config: num_bins", checkpoint_with({"num_bins": "16"})),
+    Case("ckpt-num-bins-float", CKPT, "bad.pt model_config: num_bins", checkpoint_with({"num_bins": 16.5})),
+    Case("ckpt-input-height-negative", CKPT, "bad.pt model_config: input_height",
+         checkpoint_with({"input_height": -192})),
+    Case("ckpt-input-width-not-32", CKPT, "bad.pt model_config: input_width", checkpoint_with({"input_width": 200})),
+    Case("ckpt-max-below-min", CKPT, "bad.pt model_config: max_depth",
+         checkpoint_with({"min_depth": 1.0, "max_depth": 0.5})),
+    Case("ckpt-min-depth-nan", CKPT, "bad.pt model_config: min_depth", checkpoint_with({"min_depth": float("nan")})),
+    Case("ckpt-widths-three", CKPT, "bad.pt model_config: widths", checkpoint_with({"widths": [8, 8, 8]})),
+    Case("ckpt-widths-strings", CKPT, "bad.pt model_config: widths[0]", checkpoint_with({"widths": ["8"] * 4})),
+    Case("ckpt-layers-zero", CKPT, "bad.pt model_config: layers[1]", checkpoint_with({"layers": [1, 0, 1, 1]})),
+    Case("ckpt-unknown-key", CKPT, "bad.pt model_config: unknown key colour", checkpoint_with({"colour": 1})),
+    Case("ckpt-head-unknown", CKPT, "bad.pt model_config", checkpoint_with({"head": "mystery"})),
+    Case("ckpt-head-number", CKPT, "bad.pt model_config: head", checkpoint_with({"head": 3})),
+    Case("ckpt-dropout-one", CKPT, "bad.pt model_config: dropout", checkpoint_with({"dropout": 1.0})),
+    Case("ckpt-beyond-string", CKPT, "bad.pt model_config: beyond", checkpoint_with({"beyond": "yes"})),
+    Case("ckpt-model-config-list", CKPT, "bad.pt model_config", checkpoint_with(model_config=[1])),
+    Case("ckpt-training-not-a-table", CKPT, "bad.pt: training", checkpoint_with(training="step 5")),
+    Case("ckpt-bins-disagree", CKPT, "bad.pt: stored bins", checkpoint_with({"num_bins": 17})),
+    Case("table-ckpt-num-bins-string", TABLE + ["--model", "{tmp}/bad.pt"], "bad.pt model_config: num_bins",
+         checkpoint_with({"num_bins": "16"})),
+    # ---- training configs: [model]/[data]/[train] typed before any work (no work folder left)
+    Case("train-steps-abc", TRAIN, "run.toml [train]: steps", run_config(GOOD_RUN + 'steps = "abc"\n')),
+    Case("train-batch-float", TRAIN, "run.toml [train]: batch_size", run_config(GOOD_RUN + "batch_size = 1.5\n")),
+    Case("train-batch-zero", TRAIN, "run.toml [train]: batch_size", run_config(GOOD_RUN + "batch_size = 0\n")),
+    Case("train-model-int", TRAIN, "run.toml: model", run_config('name = "r"\nmodel = 3\n')),
+    Case("train-lr-negative", TRAIN, "run.toml [train]: lr", run_config(GOOD_RUN + "lr = -1e-4\n")),
+    Case("train-lr-nan", TRAIN, "run.toml [train]: lr", run_config(GOOD_RUN + "lr = nan\n")),
+    Case("train-crop-one-value", TRAIN, "run.toml [train]: crop", run_config(GOOD_RUN + "crop = [128]\n")),
+    Case("train-schedule-unknown", TRAIN, "run.toml [train]: schedule", run_config(GOOD_RUN + 'schedule = "linear"\n')),
+    Case("train-augment-string", TRAIN, "run.toml [train]: augment", run_config(GOOD_RUN + 'augment = "no"\n')),
+    Case("train-threads-zero", TRAIN, "run.toml [train]: threads", run_config(GOOD_RUN + "threads = 0\n")),
+    Case("train-unknown-key", TRAIN, "run.toml [train]: unknown key stepz", run_config(GOOD_RUN + "stepz = 5\n")),
+    Case("train-unknown-section", TRAIN, "run.toml: unknown key optimiser", run_config(GOOD_RUN + "[optimiser]\nx = 1\n")),
+    Case("train-data-frames-negative", TRAIN, "run.toml [data]: frames",
+         run_config(GOOD_RUN + "[data]\nframes = -3\n")),
+    Case("train-data-sequences-numbers", TRAIN, "run.toml [data]: sequences[0]",
+         run_config(GOOD_RUN + "[data]\nsequences = [5, 6]\n")),
+    Case("train-data-target", TRAIN, "run.toml [data]: target", run_config(GOOD_RUN + '[data]\ntarget = "radar"\n')),
+    Case("train-model-arch-unknown", TRAIN, "run.toml [model]: arch",
+         run_config('name = "r"\n[model]\narch = "resnet-9000"\n[train]\nwork_dir = "{work}"\n')),
+    Case("train-model-num-bins-string", TRAIN, "run.toml [model]: num_bins",
+         run_config('name = "r"\n[model]\nnum_bins = "64"\n[train]\nwork_dir = "{work}"\n')),
+    Case("train-name-escapes", TRAIN, "run.toml: name",
+         run_config('name = "../up"\n[train]\nwork_dir = "{work}"\n')),
+    Case("train-toml-syntax", TRAIN, "run.toml: cannot parse", run_config(GOOD_RUN + "steps = \n")),
+    Case("train-json-steps-null", ["train", "--config", "{tmp}/run.json"], "run.json [train]: steps",
+         run_config('{"name": "r", "train": {"steps": null, "work_dir": "{work}"}}', "run.json")),
+    Case("train-json-top-list", ["train", "--config", "{tmp}/run.json"], "run.json",
+         run_config("[1, 2]", "run.json")),
+    # ---- environment variables: checked once before any command, naming the variable
+    Case("env-precision-garbage", M, "$MONO_MAP_PRECISION", env={"MONO_MAP_PRECISION": "garbage"}),
+    Case("env-memory-nan", B, "$MONO_MAP_MEMORY_GB", env={"MONO_MAP_MEMORY_GB": "nan"}),
+    Case("env-memory-negative", B, "$MONO_MAP_MEMORY_GB", env={"MONO_MAP_MEMORY_GB": "-1"}),
+    Case("env-memory-inf", B, "$MONO_MAP_MEMORY_GB", env={"MONO_MAP_MEMORY_GB": "inf"}),
+    Case("env-memory-words", B, "$MONO_MAP_MEMORY_GB", env={"MONO_MAP_MEMORY_GB": "lots"}),
+    Case("env-data-is-a-file", B[:8] + B[10:], "$MONO_MAP_DATA", env={"MONO_MAP_DATA": "{tmp}/m.bt"}),
+    Case("env-recipes-is-a-file", ["synth", "--seq", "tiny", "--data-root", "{data}"], "$MONO_MAP_RECIPES",
+         env={"MONO_MAP_RECIPES": "{tmp}/m.bt"}),
+    Case("env-ray-threads-abc", B, "$MONO_MAP_RAY_THREADS", env={"MONO_MAP_RAY_THREADS": "abc"}),
+    Case("env-ray-threads-zero", B, "$MONO_MAP_RAY_THREADS", env={"MONO_MAP_RAY_THREADS": "0"}),
+    Case("env-progress-yes", B, "$MONO_MAP_PROGRESS", env={"MONO_MAP_PROGRESS": "yes"}),
+    Case("env-no-c-true", B, "$MONO_MAP_NO_C", env={"MONO_MAP_NO_C": "true"}),
+    Case("env-rr-flush-negative", B, "$MONO_MAP_RR_FLUSH_S", env={"MONO_MAP_RR_FLUSH_S": "-1"}),
+    Case("env-trainset-is-a-file", B, "$MONO_MAP_TRAINSET", env={"MONO_MAP_TRAINSET": "{tmp}/m.bt"}),
+    # ---- data that would give a silently wrong map
+    Case("pose-reflection", B, "tiny.txt:3: pose rotation is a reflection", reflect_pose),
+    Case("eval-sidecar-missing", ["eval", "--map", "{tmp}/m.bt", "--reference", "lidar-fov", "--seq", "tiny",
+                                  "--data-root", "{data}", "--out", "{out}"], "m.json is missing",
+         lambda c: c.good_bt.with_suffix(".json").unlink()),
+    Case("image-truncated-mid-build", M, "000001.png: unreadable image (truncated PNG",
+         lambda c: replace(seq_file(c, "image_2/000001.png"), png_bytes(c, 1)[:len(png_bytes(c, 1)) // 2])),
+    Case("image-byte-flipped", M, "000001.png: unreadable image (corrupt PNG", flip_png_byte),
+    Case("depth-png-truncated", ["build", "--seq", "tiny", "--frames", "0:2", "--res", "0.4", "--data-root", "{data}",
+                                 "--out", "{out}", "--source", "depth-gt", "--stride", "8"], "depth_2/000001.png",
+         lambda c: replace(seq_file(c, "depth_2/000001.png"), seq_file(c, "depth_2/000001.png").read_bytes()[:5000])),
+    # ---- outputs: a folder in an output's place, names too long for the file system
+    Case("folder-in-place-of-bt", B + ["--name", "m"], "out/m.bt: a folder is in the way", folder_at("out/m.bt")),
+    Case("folder-in-place-of-json", B + ["--name", "m"], "out/m.json: a folder is in the way",
+         folder_at("out/m.json")),
+    Case("folder-in-place-of-rrd", B + ["--name", "m", "--rrd", "{tmp}/elsewhere/r.rrd"], "r.rrd",
+         folder_at("elsewhere/r.rrd")),
+    Case("name-too-long", B + ["--name", "n" * 251], "--name: 251 bytes is too long"),
+    Case("view-save-is-a-folder", ["view", "{tmp}/m.bt", "--save", "{out}"], "--save"),
+    Case("view-save-under-a-file", ["view", "{tmp}/m.bt", "--save", "{tmp}/m.bt/v.rrd"], "--save"),
 ]
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
 def test_bad_input(case: Case, ctx: Ctx, capfd, monkeypatch):
-    for k, v in case.env.items():
+    for k, v in ctx.fill_env(case.env).items():
         monkeypatch.setenv(k, v)
     if case.setup:
         case.setup(ctx)
@@ -328,7 +501,9 @@ def test_bad_input(case: Case, ctx: Ctx, capfd, monkeypatch):
     captured = capfd.readouterr()
     assert rc != 0
     assert "Traceback" not in captured.out
-    assert_one_error_line(captured.err, case.expect)
+    line = assert_one_error_line(captured.err, case.expect)
+    assert ".tmp" not in line and "tmpstage" not in line  # what the user named, never a temporary
+    print(line)  # shown by pytest -rP
     assert "generating it from" not in captured.err and "extending it" not in captured.err  # nothing rendered
     assert snapshot(ctx.tmp) == before
 
@@ -595,3 +770,318 @@ def test_read_only_output_is_refused_before_work(ctx, capsys, mount_tmpfs):
     assert_one_error_line(captured.err, f"--out: {ro}: cannot write there")
     assert "mono-map build:" not in captured.out  # refused before the build started
     assert snapshot(ctx.data) == before
+
+
+# ------------------------------------------------------------------------------------------ reliability 3: reuse keyed by content
+
+
+MONO_ORACLE = ["--seq", "tiny", "--frames", "0:3", "--res", "0.4", "--stride", "8", "--model", "oracle"]
+
+
+def shift_pose(c: Ctx, lineno: int, dx: float = 1.0) -> None:
+    T = np.array([float(v) for v in pose_lines(c)[lineno - 1].split()] + [0, 0, 0, 1]).reshape(4, 4)
+    T[0, 3] += dx
+    pose_line(c, lineno, T)
+
+
+def test_an_edited_pose_is_never_scored_with_the_old_map_or_reference(ctx, capsys):
+    """The issue's case: a pose edited after a build. eval without --map refuses the stale map saying
+    what changed, eval --map refuses to score the old map against the new data, and the reference is
+    rebuilt ("poses changed"), never reused."""
+    opts = MONO_ORACLE + ["--data-root", str(ctx.data), "--out", str(ctx.out)]
+    assert cli_main(["build", *opts]) == 0
+    assert cli_main(["eval", *opts]) == 0
+    out = capsys.readouterr().out
+    bt = Path(out.split("scoring ")[1].split()[0])
+    shift_pose(ctx, 2)
+    assert cli_main(["eval", *opts]) == 2
+    assert_one_error_line(capsys.readouterr().err, "stale (poses changed)")
+    assert cli_main(["eval", "--map", str(bt), "--seq", "tiny", "--data-root", str(ctx.data), "--out",
+                     str(ctx.out)]) == 2
+    assert_one_error_line(capsys.readouterr().err, "before its data changed (poses changed)")
+    assert cli_main(["build", *opts]) == 0          # rebuilt from the new poses: scored against a rebuilt reference
+    capsys.readouterr()
+    assert cli_main(["eval", *opts]) == 0
+    out = capsys.readouterr().out
+    assert "rebuilding the lidar-fov reference map" in out and "poses changed" in out
+    ref = Path(out.split("reference  ")[1].split()[0])
+    assert json.loads(ref.with_suffix(".json").read_text())["job"]["data"]["poses"] == \
+        json.loads(bt.with_suffix(".json").read_text())["job"]["data"]["poses"]
+
+
+def test_the_table_never_mixes_data_states_and_rebuilds_only_what_changed(ctx, capsys):
+    """eval --table after a pose edit rebuilds every map (all rows from one data state, recorded in the
+    table's JSON); after an image edit only the maps that read images are rebuilt."""
+    argv = ["eval", "--table", "--paper-only", "--keeps", "1.0"] + MONO_ORACLE + ["--data-root", str(ctx.data),
+                                                                                  "--out", str(ctx.out)]
+    assert cli_main(argv) == 0
+    capsys.readouterr()
+    shift_pose(ctx, 3)
+    assert cli_main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.count("poses changed") >= 3 and "reusing" not in out  # LiDAR-FOV, keep 1.0, keep 0.8
+    table = json.loads(next(ctx.out.glob("table_*.json")).read_text())
+    states = {json.dumps(json.loads(Path(r["bt"]).with_suffix(".json").read_text())["job"]["data"]["poses"])
+              for r in table["rows"]}
+    assert len(states) == 1 and json.loads(states.pop()) == table["data"]["poses"]
+    img = seq_file(ctx, "image_2/000001.png")
+    replace(img, cv2.imencode(".png", cv2.imread(str(img)), [cv2.IMWRITE_PNG_COMPRESSION, 1])[1].tobytes())
+    assert cli_main(argv) == 0
+    out = capsys.readouterr().out
+    assert "images changed" in out
+    assert [ln for ln in out.splitlines() if "reusing" in ln and "lidar-fov" in ln]  # LiDAR reads no image
+
+
+def test_training_cache_is_keyed_by_the_frames_contents(ctx):
+    """Replacing a training image (same name) makes a new training cache instead of reusing the old one."""
+    from mono_map.depth.train import DataConfig, RunConfig, build_cache
+
+    cfg = RunConfig(name="r", model={"arch": "small", **_TINY_NET},
+                    data=DataConfig(root=str(ctx.data), sequences=("tiny",), frames=2, cache_dir=str(ctx.tmp / "cache")),
+                    source="test")
+    images, _, cache = build_cache(cfg, cfg.model_config())
+    first = np.array(images)
+    replace(seq_file(ctx, "image_2/000001.png"), png_bytes(ctx, 4))
+    images2, _, _ = build_cache(cfg, cfg.model_config())
+    assert len(list(cache.glob("*_images.npy"))) == 2          # a new cache, the old one not reused
+    assert not np.array_equal(first[1], np.array(images2)[1]) and np.array_equal(first[0], np.array(images2)[0])
+    images3, _, _ = build_cache(cfg, cfg.model_config())       # unchanged data: reused
+    assert len(list(cache.glob("*_images.npy"))) == 2 and np.array_equal(np.array(images3), np.array(images2))
+
+
+def test_fingerprint_sees_what_a_map_reads(ctx):
+    from mono_map.data.fingerprint import describe_change, sequence_fingerprint
+    from mono_map.data.kitti import open_sequence
+
+    before = sequence_fingerprint(open_sequence(ctx.data, "tiny"), [0, 1])
+    replace(seq_file(ctx, "velodyne/000001.bin"), seq_file(ctx, "velodyne/000001.bin").read_bytes()[:-16])
+    shift_pose(ctx, 5)                                         # frame 4: not among [0, 1]
+    after = sequence_fingerprint(open_sequence(ctx.data, "tiny"), [0, 1])
+    assert describe_change(before, after) == "scans changed"
+    os.utime(seq_file(ctx, "calib.txt"))
+    replace(seq_file(ctx, "calib.txt"), seq_file(ctx, "calib.txt").read_text().replace("P2: 7", "P2: 8", 1))
+    assert "calibration changed" in describe_change(after, sequence_fingerprint(open_sequence(ctx.data, "tiny"), [0, 1]))
+
+
+# ------------------------------------------------------------------------------------------ reliability 3: failures never destroy
+
+
+def test_a_folder_in_place_of_the_json_keeps_the_previous_map(ctx, capsys):
+    """The issue's case: out/m.json made a folder, rebuild: refused naming m.json (not a temporary), the
+    previous m.bt and m.rrd untouched."""
+    argv = ctx.fill(B + ["--name", "m", "--rrd", "{out}/m.rrd"])
+    assert cli_main(argv) == 0
+    (ctx.out / "m.json").unlink()
+    (ctx.out / "m.json").mkdir()
+    before = snapshot(ctx.tmp)
+    capsys.readouterr()
+    assert cli_main(argv) == 2
+    line = assert_one_error_line(capsys.readouterr().err, str(ctx.out / "m.json"))
+    assert ".tmp" not in line
+    assert snapshot(ctx.tmp) == before
+
+
+def test_a_failed_rename_puts_the_previous_files_back(tmp_path, monkeypatch):
+    """Publishing a set: the third rename fails -> the first two targets hold their previous contents
+    again, the target that did not exist is not created, no temporary or backup is left."""
+    import mono_map.io as mio
+
+    a, b, c = tmp_path / "a.bt", tmp_path / "b.rrd", tmp_path / "c.json"
+    a.write_text("old a")
+    b.write_text("old b")
+    real = os.replace
+
+    def failing(src, dst):
+        if Path(dst) == c:
+            raise OSError(28, "No space left on device", str(src))
+        return real(src, dst)
+
+    monkeypatch.setattr(mio.os, "replace", failing)
+    with pytest.raises(OSError):
+        with mio.atomic_outputs(a, b, c) as (ta, tb, tc):
+            ta.write_text("new a")
+            tb.write_text("new b")
+            tc.write_text("new c")
+    monkeypatch.setattr(mio.os, "replace", real)
+    assert a.read_text() == "old a" and b.read_text() == "old b" and not c.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bt", "b.rrd"]
+
+
+def enospc(*args, **kwargs):
+    raise OSError(28, "No space left on device")
+
+
+def test_full_disk_while_writing_the_map_keeps_the_previous_one(ctx, capsys, monkeypatch):
+    import mono_map.mapping.octree as octree
+
+    argv = ctx.fill(B + ["--name", "m"])
+    assert cli_main(argv) == 0
+    before = snapshot(ctx.tmp)
+    monkeypatch.setattr(octree, "write_tree_bt", enospc)
+    capsys.readouterr()
+    assert cli_main(argv) == 2
+    line = assert_one_error_line(capsys.readouterr().err, f"{ctx.out / 'm.bt'}: could not write it (No space left")
+    assert ".tmp" not in line
+    assert snapshot(ctx.tmp) == before
+
+
+def tiny_checkpoint(c: Ctx) -> Path:
+    tiny_payload()
+    path = c.tmp / "net.pt"
+    path.write_bytes(_PAYLOAD["bytes"])
+    return path
+
+
+def test_eval_depth_on_a_full_disk_publishes_nothing(ctx, capsys, monkeypatch):
+    """The report, its JSON and both pictures are one set: a picture failing to write (full disk) leaves
+    the previous set untouched and names the picture, not the staging folder."""
+    import mono_map.viz.plots as plots
+
+    argv = ["eval-depth", "--seq", "tiny", "--frames", "0:2", "--data-root", str(ctx.data), "--out", str(ctx.out),
+            "--model", str(tiny_checkpoint(ctx))]
+    assert cli_main(argv) == 0
+    published = sorted(p.name for p in ctx.out.iterdir())
+    assert {"depth_seqtiny.json", "depth_seqtiny.md", "sparsification_seqtiny.png"} <= set(published)
+    before = snapshot(ctx.tmp)
+
+    def full(results, path):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(plots, "plot_hypotheses", full)
+    capsys.readouterr()
+    assert cli_main(argv) == 2
+    line = assert_one_error_line(capsys.readouterr().err, f"{ctx.out / 'hypotheses_seqtiny.png'}: No space left")
+    assert "tmp" not in line.replace(str(ctx.tmp), "")
+    assert snapshot(ctx.tmp) == before
+
+
+def test_an_interrupted_table_publishes_none_of_its_files(ctx, capsys, monkeypatch):
+    """A signal while the last picture (the top-down maps) is drawn: no .md, .json or picture of the
+    table is published; the previous table stays whole; no staging folder is left."""
+    import mono_map.viz.plots as plots
+
+    argv = ["eval", "--table", "--paper-only", "--keeps", "1.0"] + MONO_ORACLE + ["--data-root", str(ctx.data),
+                                                                                  "--out", str(ctx.out)]
+    assert cli_main(argv) == 0
+    tables = sorted(p.name for p in ctx.out.glob("table_*"))
+    assert len(tables) == 4  # .md, .json, sweep, top-down
+    before = snapshot(ctx.tmp)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plots, "render_topdown", interrupted)
+    assert cli_main(argv) == 130
+    assert snapshot(ctx.tmp) == before
+
+
+def test_a_killed_builds_recording_temp_is_swept_by_the_next_run_of_any_command(ctx, monkeypatch):
+    """SIGKILL while the recording is written outside --out: the next mono-map command (whatever it
+    writes) removes the temporary it left."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(ctx.tmp / "cache"))
+    elsewhere = ctx.tmp / "elsewhere"
+    proc = start(SLOW_BUILD + ["--data-root", str(ctx.data), "--out", str(ctx.out), "--rrd", str(elsewhere / "r.rrd")])
+    wait_for(proc, "stdout", "mono-map build:")
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not temps(elsewhere if elsewhere.is_dir() else ctx.out):
+        time.sleep(0.02)
+    proc.kill()
+    proc.communicate(timeout=60)
+    assert temps(elsewhere)
+    assert cli_main(["view", str(ctx.good_rrd), "--save", str(ctx.tmp / "copy.rrd")]) == 0
+    assert not temps(elsewhere) and not temps(ctx.out)
+
+
+def test_stale_staging_folders_and_backups_of_dead_runs_are_swept(tmp_path):
+    import mono_map.io as mio
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stage = tmp_path / f".out.{dead.pid}.abcd1234.tmpstage"
+    stage.mkdir()
+    (stage / "table.md").write_text("half")
+    backup = tmp_path / f".m.{dead.pid}.abcd1234.tmpbak.bt"
+    backup.write_text("old")
+    mine = tmp_path / f".m.{os.getpid()}.abcd1234.tmp.bt"   # a live run's: kept
+    mine.write_text("writing")
+    with mio.staged_dir(tmp_path) as s:
+        (s / "x.txt").write_text("x")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [mine.name, "x.txt"]
+
+
+# ------------------------------------------------------------------------------------------ reliability 3: messages
+
+
+def test_view_save_on_a_full_disk_is_one_line(ctx, capsys, monkeypatch):
+    import mono_map.io as mio
+    import mono_map.viz.rerun_stream as rs
+
+    monkeypatch.setattr(mio, "free_bytes", lambda path: 1 << 20)
+    assert cli_main(["view", str(ctx.good_bt), "--save", str(ctx.out / "v.rrd")]) == 2
+    assert_one_error_line(capsys.readouterr().err, "--save")
+    monkeypatch.undo()
+
+    def flush_fails(*args, **kwargs):
+        raise RuntimeError("Flush timed out - rerun sink blocked")
+
+    monkeypatch.setattr(rs, "log_bt_map", flush_fails)
+    assert cli_main(["view", str(ctx.good_bt), "--save", str(ctx.out / "v.rrd")]) == 2
+    assert_one_error_line(capsys.readouterr().err, f"{ctx.out / 'v.rrd'}: rerun could not write the recording")
+    assert not any(ctx.out.iterdir())
+
+
+def test_build_viewer_without_a_display_is_refused_up_front(ctx, capsys, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    t0 = time.monotonic()
+    assert cli_main(ctx.fill(B + ["--viewer"])) == 2
+    captured = capsys.readouterr()
+    assert_one_error_line(captured.err, "--viewer: no display")
+    assert "mono-map build:" not in captured.out and time.monotonic() - t0 < 10
+    assert not any(ctx.out.iterdir())
+
+
+def test_a_legal_245_character_name_builds(ctx, capsys):
+    name = "n" * 245
+    assert cli_main(ctx.fill(B + ["--name", name, "--rrd", "{out}/" + name + ".rrd"])) == 0
+    assert sorted(p.name for p in ctx.out.iterdir()) == sorted([f"{name}.bt", f"{name}.json", f"{name}.rrd"])
+
+
+def test_an_unreadable_marker_is_not_called_malformed(ctx, capsys, monkeypatch):
+    """Root reads any file whatever its mode, so the unreadable synth.json is simulated."""
+    real = Path.read_text
+
+    def read_text(self, *args, **kwargs):
+        if self.name == "synth.json":
+            raise PermissionError(13, "Permission denied", str(self))
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "read_text", read_text)
+    assert cli_main(ctx.fill(B)) == 2
+    line = assert_one_error_line(capsys.readouterr().err, "synth.json: cannot read")
+    assert "Permission denied" in line and "malformed" not in line and "--force" not in line
+
+
+def test_schema_declares_and_checks_fields():
+    """The mechanism other configs use (docs/reliability.md): types, ranges, choices, sequences, names."""
+    from dataclasses import dataclass, field
+
+    from mono_map.errors import MonoMapError
+    from mono_map.schema import bounded, check_fields
+
+    @dataclass(frozen=True)
+    class Cfg:
+        steps: int = field(default=1, metadata=bounded(lo=1))
+        rate: float = field(default=0.5, metadata=bounded(lo=0, hi=1, lo_open=True))
+        mode: str = field(default="a", metadata=bounded(choices=("a", "b")))
+        size: tuple = field(default=(4, 4), metadata=bounded(item=int, length=2, lo=1))
+        note: str | None = None
+
+    assert check_fields(Cfg, {"steps": 3, "rate": 1, "size": [2, 3], "note": None}, "f") == \
+        {"steps": 3, "rate": 1.0, "size": (2, 3), "note": None}
+    for bad, said in [({"steps": True}, "f: steps: expected an integer"), ({"steps": 0}, "f: steps: must be >= 1"),
+                      ({"rate": 0}, "f: rate: must be > 0"), ({"rate": "x"}, "f: rate: expected a number"),
+                      ({"mode": "c"}, "f: mode: must be one of"), ({"size": [1, 0]}, "f: size[1]: must be >= 1"),
+                      ({"size": 3}, "f: size: expected a list"), ({"zz": 1}, "f: unknown key zz")]:
+        with pytest.raises(MonoMapError, match=re.escape(said)):
+            check_fields(Cfg, bad, "f")

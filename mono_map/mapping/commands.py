@@ -154,7 +154,13 @@ def check_name(name: str | None) -> str | None:
     if not name or name in (".", "..") or "/" in name or "\\" in name or name.startswith(".") or "\0" in name:
         raise MonoMapError(f"--name: {name!r} must be a plain file name (no '/', not starting with '.'), "
                            "so the outputs stay inside --out")
+    if len(name.encode()) > NAME_MAX - len(".json"):
+        raise MonoMapError(f"--name: {len(name.encode())} bytes is too long for a file name "
+                           f"(at most {NAME_MAX - len('.json')}, so that {name[:12]}….json fits in 255)")
     return name
+
+
+NAME_MAX = 255  # bytes in a file name (Linux file systems)
 
 
 DEFAULT_FRAMES = 500  # build and eval: the first 500 frames unless --frames says otherwise
