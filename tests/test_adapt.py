@@ -161,3 +161,14 @@ def test_bad_inputs_one_line(tiny_root, tiny_ckpt, tmp_path, capsys):
     assert not (tmp_path / "o").exists() or not list((tmp_path / "o").glob("*.pt"))
     with pytest.raises(MonoMapError, match="00 is the held-out"):
         AdaptConfig(replay=1.0, replay_seq="00").validate()
+
+
+def test_replay_mixes_supervised_batches(tiny_root, tiny_ckpt, tmp_path):
+    """Replay on a synthetic sequence (here tiny itself, with its LiDAR) changes the weights the run reaches."""
+    run(tiny_root, tiny_ckpt, tmp_path, 2, "s0", "o0")
+    r = run(tiny_root, tiny_ckpt, tmp_path, 2, "s1", "o1", replay=0.5, replay_seq="tiny", replay_frames=3)
+    assert r.metadata["adapted"]["settings"]["replay"] == 0.5
+    st = torch.load(next((tmp_path / "s1").glob("*/state.pt")), weights_only=False)
+    assert st["replay_scale"] is not None and st["replay_scale"] > 0
+    _, w0 = last_weights(tmp_path / "s0")
+    assert not all(torch.equal(w0[k], v) for k, v in st["model"].items())
