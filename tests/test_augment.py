@@ -189,3 +189,28 @@ def test_augmentation_config_is_checked_with_one_line(tmp_path):
     bad.write_text('[model]\nhead = "binary"\n[train]\nphotometric = "camera"\nscale = [1.0, 3.0]\n')
     with pytest.raises(MonoMapError, match=r"bad.toml: train.scale"):
         load_run_config(bad)
+
+
+def test_camera_stress_scores_each_effect_against_the_clean_frames():
+    """tools/camera_stress.py: the 'none' row is validate() on the frames as they are; an effect that
+    changes the image changes the prediction it is scored on."""
+    import torch
+
+    from mono_map.depth.networks import DepthNet, named_config
+    from mono_map.eval.validation import validate
+    from tests.tool_loader import load_tool
+
+    cs = load_tool("camera_stress")
+    torch.manual_seed(0)
+    model = DepthNet(named_config("small", head="binary", widths=[8, 8, 8, 8], stem_width=8, spp_width=4,
+                                  decoder_widths=[8, 8, 8], num_bins=16, beyond=True))
+    rng = np.random.default_rng(0)
+    img = np.round(_scene(64, 96) * 255).astype(np.uint8)
+    dep = np.where(rng.random((64, 96)) < 0.3, rng.uniform(2, 60, (64, 96)), 0).astype(np.float32)
+    frames = [(img, dep)]
+    conds = {k: cs.CONDITIONS[k] for k in ("none", "noise (shot 0.01, read 0.02)", "exposure −1.5 stops")}
+    out = cs.stress(model, frames, conds)
+    ref = validate(model, frames, model.cfg.head, model.cfg.bins, model.cfg.beyond)
+    assert out["none"]["abs_rel"] == pytest.approx(ref["abs_rel"], rel=1e-6)
+    assert out["noise (shot 0.01, read 0.02)"]["abs_rel"] != ref["abs_rel"]
+    assert out["exposure −1.5 stops"]["abs_rel"] != ref["abs_rel"]
