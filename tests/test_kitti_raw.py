@@ -233,6 +233,12 @@ def test_synth_layout_raw(tiny_root, tmp_path, capsys):
     assert cli_main(["synth", "--seq", "tiny", "--drive", "2011_01_02_drive_0008_sync", "--data-root", str(root)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-2].startswith("mono-map: error: --drive:") and err[-1].startswith("mono-map: error: --drive:")
+    # a drive it did not write (no synth.json: real data, say) is never overwritten, even with --force
+    (root / "2011_01_02" / "2011_01_02_drive_0007_sync" / "synth.json").unlink()
+    assert cli_main(["synth", "--seq", "tiny", "--layout", "raw", "--drive", "2011_01_02_drive_0007_sync",
+                     "--data-root", str(root)]) == 2
+    assert "never overwritten" in capsys.readouterr().err
+    assert len(open_sequence(root, "2011_01_02_drive_0007_sync")) == 6
 
 
 # ------------------------------------------------------------------------------------- bad drives
