@@ -362,6 +362,7 @@ BAD_SPLITS = [  # (id, split lines or None for a missing file, extra options, wh
     ("eigen-none-found", "eigen", [], "none of the 697 frames of"),
     ("with-frames", [f"{DATE}/{DRIVE} 0000000001 l"], ["--frames", "0:2"], "--frames"),
     ("with-dense", [f"{DATE}/{DRIVE} 0000000001 l"], ["--gt", "dense"], "--gt dense"),
+    ("no-scans", [f"{DATE}/{DRIVE} 0000000001 l"], ["--data-root", "{noscans}"], "velodyne_points/data: no velodyne"),
 ]
 
 
@@ -370,6 +371,10 @@ def test_bad_split_one_line(raw_root, tmp_path, capsys, case):
     _, lines, extra, names = case
     split = tmp_path / "split.txt" if lines is None else "eigen" if lines == "eigen" else write_split(tmp_path, lines)
     out = tmp_path / "out"
+    if "{noscans}" in extra:   # a drive without velodyne_points: its scans are the ground truth
+        shutil.copytree(raw_root / DATE, tmp_path / "noscans" / DATE, copy_function=os.link)
+        shutil.rmtree(tmp_path / "noscans" / DATE / DRIVE / "velodyne_points")
+        extra = [str(tmp_path / "noscans") if e == "{noscans}" else e for e in extra]
     assert cli_main(["eval-depth", "--data-root", str(raw_root), "--split", str(split), "--model", "oracle-none",
                      "--out", str(out), *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -109,6 +109,9 @@ def split_frames(root: str | Path, split: str) -> SplitSelection:
             seqs[line.drive] = open_sequence(root, line.drive) if there else None
             if not there:
                 missing.append(line.drive)
+            elif not seqs[line.drive].velodyne_files:   # the ground truth is made from the scans
+                raise MonoMapError(f"{seqs[line.drive].path / 'velodyne_points' / 'data'}: no velodyne scans "
+                                   f"(the split's ground truth is made from them)")
         seq = seqs[line.drive]
         if seq is None:
             continue
