@@ -329,17 +329,24 @@ def test_eval_depth_split_counts_and_protocols(raw_root, tmp_path, capsys, ckpt)
     assert "2 of the 4 frames of split.txt found" in cap.err
     rep = json.loads((out / "depth_split_split.json").read_text())
     assert (rep["n_found"], rep["n_listed"], rep["missing_drives"]) == (2, 4, ["2011_09_26_drive_0002_sync"])
-    (model,) = rep["results"]["eigen"]
-    eig, full = rep["results"]["eigen"][model], rep["results"]["full"][model]
+    (eig,) = rep["results"].values()
     assert eig["frames"] == [f"{DRIVE}_0000000001", f"{DRIVE}_0000000004"]
     # the Garg crop keeps fewer ground-truth pixels than the full image; the three rows are numbers and differ
-    assert 0 < eig["n_pixels"] < full["n_pixels"]
-    rows = (eig["metrics"], eig["metrics_median_scaled"], full["metrics"])
+    assert 0 < eig["n_pixels"] < eig["n_pixels_full_image"]
+    rows = (eig["metrics"], eig["metrics_median_scaled"], eig["metrics_full_image"])
     for m in rows:
         assert np.isfinite(m["abs_rel"]) and m["abs_rel"] > 0 and 0 <= m["a1"] <= 1
     assert len({m["abs_rel"] for m in rows}) == 3
     assert eig["median_ratio"]["median"] > 0 and eig["median_ratio"]["median"] != 1
     assert "Eigen: raw-calibration LiDAR, Garg crop" in (out / "depth_split_split.md").read_text()
+    # one pass scores both ground truths: the full-image row is what a pass over the full image alone gives
+    from mono_map.depth.inference import DepthPredictor
+    from mono_map.eval.depth_evaluation import eigen_frames, evaluate_model, split_frames
+
+    sel = split_frames(raw_root, str(split))
+    alone = evaluate_model(DepthPredictor.load(str(ckpt)), ((n, im, full) for n, im, _, full in eigen_frames(sel)),
+                           cap=80.0, garg_crop=False)
+    assert alone["metrics"] == eig["metrics_full_image"] and alone["n_pixels"] == eig["n_pixels_full_image"]
 
 
 def test_eigen_split_is_packaged_and_lists_697_frames():
