@@ -233,6 +233,12 @@ def test_synth_layout_raw(tiny_root, tmp_path, capsys):
     assert cli_main(["synth", "--seq", "tiny", "--drive", "2011_01_02_drive_0008_sync", "--data-root", str(root)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-2].startswith("mono-map: error: --drive:") and err[-1].startswith("mono-map: error: --drive:")
+    # a drive it did not write (no synth.json: real data, say) is never overwritten, even with --force
+    (root / "2011_01_02" / "2011_01_02_drive_0007_sync" / "synth.json").unlink()
+    assert cli_main(["synth", "--seq", "tiny", "--layout", "raw", "--drive", "2011_01_02_drive_0007_sync",
+                     "--data-root", str(root)]) == 2
+    assert "never overwritten" in capsys.readouterr().err
+    assert len(open_sequence(root, "2011_01_02_drive_0007_sync")) == 6
 
 
 # ------------------------------------------------------------------------------------- bad drives
@@ -323,17 +329,24 @@ def test_eval_depth_split_counts_and_protocols(raw_root, tmp_path, capsys, ckpt)
     assert "2 of the 4 frames of split.txt found" in cap.err
     rep = json.loads((out / "depth_split_split.json").read_text())
     assert (rep["n_found"], rep["n_listed"], rep["missing_drives"]) == (2, 4, ["2011_09_26_drive_0002_sync"])
-    (model,) = rep["results"]["eigen"]
-    eig, full = rep["results"]["eigen"][model], rep["results"]["full"][model]
+    (eig,) = rep["results"].values()
     assert eig["frames"] == [f"{DRIVE}_0000000001", f"{DRIVE}_0000000004"]
     # the Garg crop keeps fewer ground-truth pixels than the full image; the three rows are numbers and differ
-    assert 0 < eig["n_pixels"] < full["n_pixels"]
-    rows = (eig["metrics"], eig["metrics_median_scaled"], full["metrics"])
+    assert 0 < eig["n_pixels"] < eig["n_pixels_full_image"]
+    rows = (eig["metrics"], eig["metrics_median_scaled"], eig["metrics_full_image"])
     for m in rows:
         assert np.isfinite(m["abs_rel"]) and m["abs_rel"] > 0 and 0 <= m["a1"] <= 1
     assert len({m["abs_rel"] for m in rows}) == 3
     assert eig["median_ratio"]["median"] > 0 and eig["median_ratio"]["median"] != 1
     assert "Eigen: raw-calibration LiDAR, Garg crop" in (out / "depth_split_split.md").read_text()
+    # one pass scores both ground truths: the full-image row is what a pass over the full image alone gives
+    from mono_map.depth.inference import DepthPredictor
+    from mono_map.eval.depth_evaluation import eigen_frames, evaluate_model, split_frames
+
+    sel = split_frames(raw_root, str(split))
+    alone = evaluate_model(DepthPredictor.load(str(ckpt)), ((n, im, full) for n, im, _, full in eigen_frames(sel)),
+                           cap=80.0, garg_crop=False)
+    assert alone["metrics"] == eig["metrics_full_image"] and alone["n_pixels"] == eig["n_pixels_full_image"]
 
 
 def test_eigen_split_is_packaged_and_lists_697_frames():
@@ -356,6 +369,7 @@ BAD_SPLITS = [  # (id, split lines or None for a missing file, extra options, wh
     ("eigen-none-found", "eigen", [], "none of the 697 frames of"),
     ("with-frames", [f"{DATE}/{DRIVE} 0000000001 l"], ["--frames", "0:2"], "--frames"),
     ("with-dense", [f"{DATE}/{DRIVE} 0000000001 l"], ["--gt", "dense"], "--gt dense"),
+    ("no-scans", [f"{DATE}/{DRIVE} 0000000001 l"], ["--data-root", "{noscans}"], "velodyne_points/data: no velodyne"),
 ]
 
 
@@ -364,6 +378,10 @@ def test_bad_split_one_line(raw_root, tmp_path, capsys, case):
     _, lines, extra, names = case
     split = tmp_path / "split.txt" if lines is None else "eigen" if lines == "eigen" else write_split(tmp_path, lines)
     out = tmp_path / "out"
+    if "{noscans}" in extra:   # a drive without velodyne_points: its scans are the ground truth
+        shutil.copytree(raw_root / DATE, tmp_path / "noscans" / DATE, copy_function=os.link)
+        shutil.rmtree(tmp_path / "noscans" / DATE / DRIVE / "velodyne_points")
+        extra = [str(tmp_path / "noscans") if e == "{noscans}" else e for e in extra]
     assert cli_main(["eval-depth", "--data-root", str(raw_root), "--split", str(split), "--model", "oracle-none",
                      "--out", str(out), *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()

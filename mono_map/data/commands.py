@@ -58,13 +58,10 @@ def run_synth(args: argparse.Namespace) -> int:
         raise MonoMapError("--drive: names a raw drive; pass --layout raw")
     drive = None
     if args.layout == "raw":
-        from mono_map.data.kitti_raw import drive_date
-        from mono_map.data.kitti_raw_writer import synthetic_drive_name
+        from mono_map.data.kitti_raw_writer import check_raw_target, synthetic_drive_name
 
         drive = args.drive or synthetic_drive_name(recipe.name)
-        if drive_date(drive) is None:
-            raise MonoMapError(f"--drive: '{drive}' is not a raw drive name (YYYY_MM_DD_drive_NAME_sync, NAME "
-                               "letters and digits)")
+        check_raw_target(root, drive, force=True)   # before any rendering
     t0 = time.perf_counter()
     seq_dir = generate_sequence(recipe, root, frames=n, workers=args.workers, force=args.force)
     dt = time.perf_counter() - t0

@@ -94,17 +94,31 @@ def oxts_packets(poses: np.ndarray, T_cam0_velo: np.ndarray, rig: RawRig) -> np.
     return kitti_raw.oxts_from_poses(T_w_imu, lat, lon, alt)
 
 
-def write_raw_drive(seq: KittiSequence, root: str | os.PathLike, drive: str, frames: list[int] | None = None,
-                    rig: RawRig = RawRig(), force: bool = False) -> Path:
-    """Write frames ``frames`` (default all) of the odometry sequence ``seq`` as raw drive ``drive`` under the
-    raw root ``root`` (``root/<date>/<drive>``; the date folder's calibration files are written, or must
-    already say the same). Poses are re-based on the first written frame. Returns the drive folder."""
-    from mono_map.progress import progress
-
+def check_raw_target(root: str | os.PathLike, drive: str, force: bool = False) -> Path:
+    """The folder raw drive ``drive`` would be written to under ``root``, refused if it exists (unless ``force``
+    and it is a drive this writer made: ``synth.json``; real data is never overwritten)."""
     date = kitti_raw.drive_date(drive)
     if date is None:
         raise MonoMapError(f"--drive: '{drive}' is not a raw drive name (YYYY_MM_DD_drive_NAME_sync, NAME letters "
                            "and digits)")
+    drive_dir = Path(root) / date / drive
+    if drive_dir.exists() and not force:
+        raise MonoMapError(f"{drive_dir}: raw drive exists (pass --force to rewrite it)")
+    if drive_dir.exists() and not (drive_dir / "synth.json").is_file():
+        raise MonoMapError(f"{drive_dir}: a raw drive that mono-map did not write (no synth.json) is never "
+                           "overwritten; choose another --drive or remove it yourself")
+    return drive_dir
+
+
+def write_raw_drive(seq: KittiSequence, root: str | os.PathLike, drive: str, frames: list[int] | None = None,
+                    rig: RawRig = RawRig(), force: bool = False) -> Path:
+    """Write frames ``frames`` (default all) of the odometry sequence ``seq`` as raw drive ``drive`` under the
+    raw root ``root`` (``root/<date>/<drive>``; the date folder's calibration files are written, or must
+    already say the same). Poses are re-based on the first written frame. ``force`` rewrites a drive this
+    writer made from a synthetic sequence (``synth.json``); any other existing drive is refused. Returns the
+    drive folder."""
+    from mono_map.progress import progress
+
     if seq.poses_cam0 is None:
         raise MonoMapError(f"{seq.pose_path}: poses needed to write OXTS for a raw drive")
     idx = list(range(len(seq))) if frames is None else [int(i) for i in frames]
@@ -112,10 +126,8 @@ def write_raw_drive(seq: KittiSequence, root: str | os.PathLike, drive: str, fra
         raise MonoMapError(f"{seq.path}: frames {min(idx)}..{max(idx)} out of range (sequence has {len(seq)} frames)")
     if not idx:
         raise MonoMapError(f"{seq.path}: no frames to write")
-    date_dir = Path(root) / date
-    drive_dir = date_dir / drive
-    if drive_dir.exists() and not force:
-        raise MonoMapError(f"{drive_dir}: raw drive exists (pass --force to rewrite it)")
+    drive_dir = check_raw_target(root, drive, force)
+    date_dir = drive_dir.parent
     calib_src = seq.path / "calib.txt"
     P = {k: v.reshape(3, 4) for k, v in read_calib_file(calib_src).items() if k in ("P0", "P1", "P2", "P3")}
     texts = calib_texts(P, seq.calib.T_cam0_velo, seq.image_size, rig)

@@ -309,18 +309,15 @@ def check_split_args(args):
 
 
 def run_split(args, sel, predictors: dict) -> int:
-    """eval-depth --split: each model under Eigen's protocol and over the full image; Table I + the usual report."""
+    """eval-depth --split: each model under Eigen's protocol and over the full image (one pass); Table I + the
+    usual report."""
     from mono_map.eval.depth_evaluation import eigen_frames, evaluate_model, markdown_report, table_one
     from mono_map.io import write_json_atomic, write_text_atomic
     from mono_map.viz.plots import plot_hypotheses, plot_sparsification
 
     n = len(sel.frames)
-    results = {"eigen": {}, "full": {}}
-    for h, p in predictors.items():
-        results["eigen"][h] = evaluate_model(p, eigen_frames(sel, "eigen"), n, cap=80.0, garg_crop=True,
-                                             desc=f"eval {h} (Eigen)")
-        results["full"][h] = evaluate_model(p, eigen_frames(sel, "full"), n, cap=80.0, garg_crop=False,
-                                            desc=f"eval {h} (full image)")
+    results = {h: evaluate_model(p, eigen_frames(sel), n, cap=80.0, garg_crop=True, desc=f"eval {h}")
+               for h, p in predictors.items()}
     where = "eigen" if args.split == "eigen" else f"split_{sel.path.stem}"
     title = f"Depth evaluation on the {sel.path.name} split ({n} of {sel.n_listed} frames found)"
     out = Path(args.out)
@@ -329,10 +326,10 @@ def run_split(args, sel, predictors: dict) -> int:
         "missing_drives": sel.missing_drives, "args": {k: v for k, v in vars(args).items() if k != "func"},
         "results": results})
     md = (table_one(results, title, n, sel.n_listed) + "\n"
-          + markdown_report(results["eigen"], f"{title}: Eigen's protocol in detail").replace("# ", "## ", 1))
+          + markdown_report(results, f"{title}: Eigen's protocol in detail").replace("# ", "## ", 1))
     write_text_atomic(out / f"depth_{where}.md", md)
-    plot_sparsification(results["eigen"], out / f"sparsification_{where}.png")
-    plot_hypotheses(results["eigen"], out / f"hypotheses_{where}.png")
+    plot_sparsification(results, out / f"sparsification_{where}.png")
+    plot_hypotheses(results, out / f"hypotheses_{where}.png")
     print(md)
     print(f"wrote {out}/depth_{where}.(json|md), sparsification_{where}.png, hypotheses_{where}.png")
     return 0

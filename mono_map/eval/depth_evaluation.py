@@ -109,6 +109,9 @@ def split_frames(root: str | Path, split: str) -> SplitSelection:
             seqs[line.drive] = open_sequence(root, line.drive) if there else None
             if not there:
                 missing.append(line.drive)
+            elif not seqs[line.drive].velodyne_files:   # the ground truth is made from the scans
+                raise MonoMapError(f"{seqs[line.drive].path / 'velodyne_points' / 'data'}: no velodyne scans "
+                                   f"(the split's ground truth is made from them)")
         seq = seqs[line.drive]
         if seq is None:
             continue
@@ -118,24 +121,24 @@ def split_frames(root: str | Path, split: str) -> SplitSelection:
     return SplitSelection(path, frames, len(lines), missing)
 
 
-def eigen_frames(selection: SplitSelection, protocol: str = "eigen"):
-    """Yield (name, image, ground truth) of a split's frames: ``eigen`` = LiDAR projected as Eigen's protocol
-    does (:func:`mono_map.data.kitti_raw.eigen_depth_map`, raw calibration), ``full`` = mono-map's own
-    projection (``seq.lidar_depth``)."""
+def eigen_frames(selection: SplitSelection):
+    """Yield (name, image, Eigen ground truth, full-image ground truth) of a split's frames: the scan projected
+    as Eigen's protocol does (:func:`mono_map.data.kitti_raw.eigen_depth_map`, raw calibration) and by
+    mono-map's own projection (``seq.lidar_depth``), for :func:`evaluate_model`'s one pass."""
     from mono_map.data.kitti_raw import eigen_depth_map
 
     for drive, frame, seq, i in selection.frames:
-        if protocol == "eigen":
-            rc = seq.raw_calib
-            gt = eigen_depth_map(seq.velodyne(i), rc.P_rect_02, rc.T_cam0_velo, *seq.image_size)
-        else:
-            gt = seq.lidar_depth(i)
-        yield f"{drive}_{frame:010d}", seq.image(i), gt
+        rc = seq.raw_calib
+        eigen = eigen_depth_map(seq.velodyne(i), rc.P_rect_02, rc.T_cam0_velo, *seq.image_size)
+        yield f"{drive}_{frame:010d}", seq.image(i), eigen, seq.lidar_depth(i)
 
 
 def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray]], n_frames: int | None = None,
                    cap: float = 80.0, garg_crop: bool = False, time_frames: int = 10, desc: str = "") -> dict:
-    """Run ``predictor`` over (name, image, gt depth) frames and collect every statistic."""
+    """Run ``predictor`` over (name, image, gt depth) frames and collect every statistic.
+
+    A frame may carry a second ground truth, (name, image, gt, gt_full): the same prediction is then also
+    scored against it over the whole image (no crop), as ``metrics_full_image`` — one network pass for both."""
     import torch
     import torch.nn.functional as F
 
@@ -143,13 +146,15 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
     from mono_map.progress import progress
 
     bins = predictor.bins
-    per = {"log": [], "linear": [], "argmax": [], "median": []}
+    per = {"log": [], "linear": [], "argmax": [], "median": [], "full": []}
+    n_full = 0
     ratios = []
     pooled = {k: [] for k in ("gt", "log", "linear", "argmax", "entropy", "std_log", "modes", "top_bins")}
     times = []
     names = []
     n_hyp, has_probs = None, False
-    for j, (name, image, gt) in enumerate(progress(frames, total=n_frames, desc=desc or "eval-depth", unit="frame")):
+    for j, (name, image, gt, *second) in enumerate(progress(frames, total=n_frames, desc=desc or "eval-depth",
+                                                            unit="frame")):
         if j == 0:
             predictor.predict(image)  # warm-up, not timed
         if j < time_frames:
@@ -194,6 +199,9 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         if m.any():   # monocular methods' convention: each image scaled by median(gt) / median(prediction)
             ratios.append(float(np.median(gt[m]) / np.median(maps[0][m])))
             per["median"].append(image_errors(gt, maps[0] * ratios[-1], cap, garg_crop=garg_crop))
+        if second:
+            per["full"].append(image_errors(second[0], maps[0], cap))
+            n_full += int(valid_mask(second[0], cap).sum())
         pooled["gt"].append(gt[m].astype(np.float64))
         pooled["entropy"].append(maps[3][m])
         pooled["std_log"].append(maps[4][m])
@@ -216,6 +224,8 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         "metrics_argmax": mean_errors(per["argmax"]),
         "metrics_median_scaled": mean_errors(per["median"]),
         "median_ratio": {"median": float(np.median(ratios)), "std": float(np.std(ratios))} if ratios else None,
+        "metrics_full_image": mean_errors(per["full"]) if per["full"] else None,
+        "n_pixels_full_image": n_full if per["full"] else None,
         "mean_entropy": float(P["entropy"].mean()),                    # nats, at the ground-truth pixels
         "sparsification": spars,
         "auc_std_log": spars_std["auc"],
@@ -297,16 +307,17 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
 
 
 
-def table_one(results: dict[str, dict[str, dict]], title: str, found: int, listed: int) -> str:
-    """Table-I-style Markdown: per model and protocol (``results[protocol][model]``) the seven standard metrics."""
+def table_one(results: dict[str, dict], title: str, found: int, listed: int) -> str:
+    """Table-I-style Markdown: per model (``results[model]``, :func:`evaluate_model` on :func:`eigen_frames`)
+    the seven standard metrics under Eigen's protocol, median-scaled, and over the full image."""
     keys = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
-    rows = (("eigen", "metrics", "Eigen: raw-calibration LiDAR, Garg crop, 1e-3–80 m"),
-            ("eigen", "metrics_median_scaled", "Eigen, per-image median scaling"),
-            ("full", "metrics", "full image, mono-map's LiDAR projection, 1e-3–80 m"))
+    rows = (("metrics", "Eigen: raw-calibration LiDAR, Garg crop, 1e-3–80 m"),
+            ("metrics_median_scaled", "Eigen, per-image median scaling"),
+            ("metrics_full_image", "full image, mono-map's LiDAR projection, 1e-3–80 m"))
     L = [f"# {title}", "", f"{found} of the {listed} frames of the split found; depth = log-space expectation.", "",
          "| model | protocol | " + " | ".join(LABELS[k] for k in keys) + " |", "|---|---|" + "---|" * len(keys)]
-    for model in results["eigen"]:
-        for protocol, field, label in rows:
-            m = results[protocol][model][field]
+    for model, r in results.items():
+        for field, label in rows:
+            m = r[field]
             L.append(f"| {model} | {label} | " + " | ".join(f"{m[k]:.3f}" for k in keys) + " |")
     return "\n".join(L) + "\n"
