@@ -482,6 +482,14 @@ CASES = [
          folder_at("elsewhere/r.rrd")),
     Case("name-too-long", B + ["--name", "n" * 251], "--name: 251 bytes is too long"),
     Case("view-save-is-a-folder", ["view", "{tmp}/m.bt", "--save", "{out}"], "--save"),
+    Case("synth-recipe-fraction", ["synth", "--seq", "{tmp}/r.toml", "--data-root", "{data}"],
+         "r.toml [buildings]: glass_fraction", write("r.toml", 'seed = 1\nframes = 2\ntrajectory = "00"\n'
+                                                          '[buildings]\nglass_fraction = 5\n')),
+    Case("synth-recipe-nan", ["synth", "--seq", "{tmp}/r.toml", "--data-root", "{data}"], "r.toml [light]: exposure",
+         write("r.toml", 'seed = 1\nframes = 2\ntrajectory = "00"\n[light]\nexposure = nan\n')),
+    Case("synth-recipe-string-number", ["synth", "--seq", "{tmp}/r.toml", "--data-root", "{data}"],
+         "r.toml [street]: lane_width", write("r.toml", 'seed = 1\nframes = 2\ntrajectory = "00"\n'
+                                                        '[street]\nlane_width = "3.5"\n')),
     Case("view-save-under-a-file", ["view", "{tmp}/m.bt", "--save", "{tmp}/m.bt/v.rrd"], "--save"),
 ]
 
