@@ -1,9 +1,13 @@
 """Atomic file output: results appear whole or not at all, alone or as a set.
 
 Temporary files are ``.<stem>.<pid>.<random>.tmp<suffix>`` beside their target (``mkstemp``: unique
-per process and call, so concurrent writers never share one). A process killed before it could
-remove its temporary files leaves them behind; :func:`clean_stale_temps` removes those whose
-process is gone.
+per process and call, so concurrent writers never share one); backups of replaced files
+``.<stem>.<pid>.<random>.tmpbak<suffix>``, staging folders ``.<folder>.<pid>.<random>.tmpstage``. A set of
+outputs is published together, the previous files put back if a rename fails (:func:`publish_renames`).
+A process killed before it could remove its temporaries leaves them behind; :func:`clean_stale_temps`
+removes those whose process is gone, in the folders written to (listed in :func:`temp_registry`, swept
+by :func:`sweep_registered_temps` before each command). :func:`user_path` turns any of these names in
+a message back into the output it stands for.
 """
 
 from __future__ import annotations
@@ -156,7 +160,12 @@ def publish_renames(pairs: list[tuple[Path, Path]]) -> None:
             if target.is_file():
                 backup = temp_path(target, kind="bak")
                 backup.unlink()
-                os.link(target, backup)
+                try:
+                    os.link(target, backup)
+                except OSError:  # a file system without hard links: a copy
+                    import shutil
+
+                    shutil.copy2(target, backup)
             backups.append((target, backup))
             if tmp.exists():  # mkstemp makes 0600; give results the mode a plain open() would
                 os.chmod(tmp, 0o666 & ~_UMASK)

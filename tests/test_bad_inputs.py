@@ -417,6 +417,10 @@ CASES = [
     Case("ckpt-model-config-list", CKPT, "bad.pt model_config", checkpoint_with(model_config=[1])),
     Case("ckpt-training-not-a-table", CKPT, "bad.pt: training", checkpoint_with(training="step 5")),
     Case("ckpt-bins-disagree", CKPT, "bad.pt: stored bins", checkpoint_with({"num_bins": 17})),
+    Case("ckpt-state-dict-number", CKPT, "bad.pt: state_dict", checkpoint_with(state_dict=5)),
+    Case("ckpt-state-dict-values", CKPT, "bad.pt: state_dict", checkpoint_with(state_dict={"stem.0.weight": 1})),
+    Case("ckpt-bin-centres-text", CKPT, "bad.pt: stored bin centres", checkpoint_with(bin_centres="abc")),
+    Case("ckpt-bin-centres-short", CKPT, "bad.pt: stored bin centres", checkpoint_with(bin_centres=[1.0, 2.0])),
     Case("table-ckpt-num-bins-string", TABLE + ["--model", "{tmp}/bad.pt"], "bad.pt model_config: num_bins",
          checkpoint_with({"num_bins": "16"})),
     # ---- training configs: [model]/[data]/[train] typed before any work (no work folder left)
@@ -482,6 +486,18 @@ CASES = [
          folder_at("elsewhere/r.rrd")),
     Case("name-too-long", B + ["--name", "n" * 251], "--name: 251 bytes is too long"),
     Case("view-save-is-a-folder", ["view", "{tmp}/m.bt", "--save", "{out}"], "--save"),
+    Case("synth-recipe-fraction", ["synth", "--seq", "{tmp}/r.toml", "--data-root", "{data}"],
+         "r.toml [buildings]: glass_fraction", write("r.toml", 'seed = 1\nframes = 2\ntrajectory = "00"\n'
+                                                          '[buildings]\nglass_fraction = 5\n')),
+    Case("synth-recipe-nan", ["synth", "--seq", "{tmp}/r.toml", "--data-root", "{data}"], "r.toml [light]: exposure",
+         write("r.toml", 'seed = 1\nframes = 2\ntrajectory = "00"\n[light]\nexposure = nan\n')),
+    Case("synth-recipe-string-number", ["synth", "--seq", "{tmp}/r.toml", "--data-root", "{data}"],
+         "r.toml [street]: lane_width", write("r.toml", 'seed = 1\nframes = 2\ntrajectory = "00"\n'
+                                                        '[street]\nlane_width = "3.5"\n')),
+    Case("view-frame-negative", ["view", "{tmp}/m.bt", "--screenshot", "{out}/v.png", "--frame", "-4"], "--frame"),
+    Case("view-screenshot-suffix", ["view", "{tmp}/m.bt", "--screenshot", "{out}/v.jpg"], "--screenshot"),
+    Case("eval-depth-threads-zero", ["eval-depth", "--seq", "tiny", "--data-root", "{data}", "--frames", "0:1",
+                                     "--threads", "0", "--out", "{out}/d"], "--threads"),
     Case("view-save-under-a-file", ["view", "{tmp}/m.bt", "--save", "{tmp}/m.bt/v.rrd"], "--save"),
 ]
 

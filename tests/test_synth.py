@@ -238,7 +238,7 @@ def test_recipe_errors(tmp_path):
     good = Path(load_recipe("tiny").path).read_text()
     bad = tmp_path / "bad.toml"
     bad.write_text(good + "\nbogus = 1\n")
-    with pytest.raises(MonoMapError, match="unknown key 'bogus'"):
+    with pytest.raises(MonoMapError, match="unknown key.*bogus"):
         load_recipe(bad)
     bad.write_text(good.replace("frames = 6", "frames = 9999"))
     with pytest.raises(MonoMapError, match="trajectory 00 has 4541 poses"):

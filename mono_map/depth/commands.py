@@ -222,6 +222,8 @@ def run_eval_depth(args) -> int:
     selection = parse_frames(args.frames, default=EVAL_FRAMES)
     if args.cap <= 0 or args.cap != args.cap:
         raise MonoMapError(f"--cap: must be a positive depth in metres, got {args.cap}")
+    if args.threads < 1:
+        raise MonoMapError(f"--threads: must be >= 1, got {args.threads}")
     if args.kitti_object and not Path(args.kitti_object).is_dir():
         raise MonoMapError(f"--kitti-object: {args.kitti_object}: no such folder")
     selection_split = check_split_args(args) if args.split else None

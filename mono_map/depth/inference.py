@@ -161,10 +161,18 @@ def load_checkpoint(path: str | os.PathLike, device: str = "cpu") -> tuple[Depth
     cfg = ModelConfig.from_dict(payload["model_config"], source=f"{path} model_config")
     if payload["bins"] != cfg.bins.to_dict():
         raise MonoMapError(f"{path}: stored bins {payload['bins']} disagree with the model config {cfg.bins.to_dict()}")
-    if "bin_centres" in payload and not np.allclose(np.asarray(payload["bin_centres"]), cfg.bins.centres, rtol=1e-6):
-        raise MonoMapError(f"{path}: stored bin centres disagree with the bin formula")
-    model = DepthNet(cfg)
+    if "bin_centres" in payload:
+        try:
+            centres = np.asarray(payload["bin_centres"], dtype=np.float64)
+            same = centres.shape == cfg.bins.centres.shape and np.allclose(centres, cfg.bins.centres, rtol=1e-6)
+        except (TypeError, ValueError):
+            same = False
+        if not same:
+            raise MonoMapError(f"{path}: stored bin centres disagree with the bin formula")
     state = payload["state_dict"]
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise MonoMapError(f"{path}: state_dict: expected a table of weight tensors")
+    model = DepthNet(cfg)
     own = model.state_dict()
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))

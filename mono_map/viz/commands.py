@@ -77,10 +77,11 @@ def screenshot(rrd: Path, png: Path, frame: int | None = None, timeout: float = 
     (last frame only; the picture may show a hover tooltip)."""
     try:
         _screenshot_headless(rrd, png, frame, timeout)
-    except _PaintTimeout:
+    except _PaintTimeout as exc:
+        why = str(exc) or ("the headless viewer did not finish painting in time (software rendering on a busy "
+                           "machine?)")
         if shutil.which("xvfb-run") is None:
-            raise MonoMapError(f"--screenshot: {png}: the headless viewer did not finish painting in time "
-                               f"(software rendering on a busy machine?) and xvfb-run is not installed") from None
+            raise MonoMapError(f"--screenshot: {png}: {why} and xvfb-run is not installed") from None
         screenshot_xvfb(rrd, png, timeout)
 
 
@@ -126,55 +127,72 @@ def _screenshot_headless(rrd: Path, png: Path, frame: int | None = None, timeout
     timeline (default: the last), and saves a screenshot. Needs a Vulkan driver; without a GPU,
     Mesa's lavapipe CPU rasterizer (Debian ``mesa-vulkan-drivers``) works, slowly.
     """
-    import time
-
     from rerun.experimental import ViewerClient
 
-    from mono_map.io import atomic_path
+    from mono_map.io import quiet_native_output
 
     png = Path(png)
     if png.suffix.lower() != ".png":
         raise MonoMapError(f"--screenshot: {png}: the output must end in .png")
     os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp")
+
     try:
-        viewer = ViewerClient.spawn(headless=True, port=_free_port(), executable_path=rerun_binary(),
-                                    hide_welcome_screen=True)
+        with quiet_native_output():  # the viewer process inherits the sink: its logs and panics stay off the terminal
+            viewer = ViewerClient.spawn(headless=True, port=_free_port(), executable_path=rerun_binary(),
+                                        hide_welcome_screen=True)
     except Exception as exc:  # no graphics adapter, binary missing, ...
         raise MonoMapError(f"--screenshot: could not start a headless rerun viewer ({str(exc).splitlines()[0]})") \
             from None
     try:
-        viewer.open(str(Path(rrd).resolve()))
-        deadline = time.monotonic() + timeout
-        while True:
-            state = viewer.get_state()
-            if not state.loading or time.monotonic() > deadline:
-                break
-            time.sleep(1.0)
-        timelines = {t.name: t for r in state.recordings for t in r.timelines}
-        if "frame" in timelines and timelines["frame"].end is not None:
-            viewer.set_time("frame", sequence=int(timelines["frame"].end if frame is None else frame),
-                            play_state="paused")
-        time.sleep(2.0)  # let it paint the new time
-
-        def shoot(path: Path) -> None:
-            for attempt in range(4):  # a CPU rasterizer on a busy machine can miss the viewer's 15 s deadline
-                try:
-                    viewer.save_screenshot(str(path.resolve()))
-                    return
-                except TimeoutError:
-                    pass
-            raise _PaintTimeout()
-
-        with atomic_path(png) as tmp:
-            # the first paint of a new time starts decoding its images (shown as loading dots):
-            # shoot once, give the decoder time, shoot again
-            shoot(tmp)
-            time.sleep(5.0)
-            shoot(tmp)
-            if not tmp.exists() or tmp.stat().st_size == 0:
-                raise MonoMapError(f"--screenshot: {png}: the viewer did not write a picture")
+        _drive_viewer(viewer, rrd, png, frame, timeout)
+    except (MonoMapError, _PaintTimeout, KeyboardInterrupt):
+        raise
+    except Exception as exc:  # the headless viewer died (e.g. no render context on this machine): try xvfb
+        raise _PaintTimeout(f"the headless rerun viewer stopped ({' '.join(str(exc).split())[:80] or type(exc).__name__}; "
+                            "no graphics adapter it can render with?)") from None
     finally:
-        viewer.quit()
+        try:
+            viewer.quit()
+        except Exception:  # noqa: BLE001 - already gone
+            pass
+
+
+def _drive_viewer(viewer, rrd: Path, png: Path, frame: int | None, timeout: float) -> None:
+    """Open ``rrd`` in the running headless ``viewer``, go to ``frame`` and save ``png`` (atomically)."""
+    import time
+
+    from mono_map.io import atomic_path
+
+    viewer.open(str(Path(rrd).resolve()))
+    deadline = time.monotonic() + timeout
+    while True:
+        state = viewer.get_state()
+        if not state.loading or time.monotonic() > deadline:
+            break
+        time.sleep(1.0)
+    timelines = {t.name: t for r in state.recordings for t in r.timelines}
+    if "frame" in timelines and timelines["frame"].end is not None:
+        viewer.set_time("frame", sequence=int(timelines["frame"].end if frame is None else frame),
+                        play_state="paused")
+    time.sleep(2.0)  # let it paint the new time
+
+    def shoot(path: Path) -> None:
+        for attempt in range(4):  # a CPU rasterizer on a busy machine can miss the viewer's 15 s deadline
+            try:
+                viewer.save_screenshot(str(path.resolve()))
+                return
+            except TimeoutError:
+                pass
+        raise _PaintTimeout()
+
+    with atomic_path(png) as tmp:
+        # the first paint of a new time starts decoding its images (shown as loading dots):
+        # shoot once, give the decoder time, shoot again
+        shoot(tmp)
+        time.sleep(5.0)
+        shoot(tmp)
+        if not tmp.exists() or tmp.stat().st_size == 0:
+            raise MonoMapError(f"--screenshot: {png}: the viewer did not write a picture")
 
 
 def check_display(what: str = "view", instead: str = "use --save OUT.rrd or --screenshot OUT.png") -> None:
@@ -191,6 +209,12 @@ def run_view(args) -> int:
     suffix = path.suffix.lower()
     if suffix not in (".rrd", ".bt"):
         raise MonoMapError(f"{path}: expected a .rrd recording or a .bt OctoMap (got '{suffix or 'no suffix'}')")
+    if args.frame is not None and args.frame < 0:
+        raise MonoMapError(f"--frame: must be a frame number >= 0, got {args.frame}")
+    if args.screenshot is not None:
+        from mono_map.io import check_output_file
+
+        check_output_file(args.screenshot, "--screenshot", ".png")
     if args.save is not None:
         from mono_map.io import check_output_file
         from mono_map.mapping.jobs import RRD_MIN_FREE

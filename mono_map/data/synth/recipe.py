@@ -16,58 +16,59 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mono_map.errors import MonoMapError
+from mono_map.schema import bounded, check_fields
 
 
 @dataclass(frozen=True)
 class StreetParams:
     """Road cross-section (metres).  The car drives the centre of the right lane."""
 
-    lane_width: float = 3.5
-    parking_width: float = 2.3        # parking strip on each side of the two lanes
-    sidewalk_width: float = 3.0
-    curb_height: float = 0.15
+    lane_width: float = field(default=3.5, metadata=bounded(lo=0, lo_open=True))
+    parking_width: float = field(default=2.3, metadata=bounded(lo=0, lo_open=True))  # parking strip on each side of the two lanes
+    sidewalk_width: float = field(default=3.0, metadata=bounded(lo=0, lo_open=True))
+    curb_height: float = field(default=0.15, metadata=bounded(lo=0))
 
 
 @dataclass(frozen=True)
 class BuildingParams:
-    density: float = 0.85             # probability that a frontage slot gets a building
-    height_min: float = 6.0           # metres
-    height_max: float = 16.0
-    width_min: float = 8.0
-    width_max: float = 20.0
-    depth_min: float = 8.0
-    depth_max: float = 14.0
-    setback_max: float = 3.0          # extra distance behind the sidewalk
-    glass_fraction: float = 0.6       # fraction of windows that are reflective glass (others curtained)
-    storefront_fraction: float = 0.3  # buildings with a glass shop front on the ground floor
-    brick_fraction: float = 0.4       # brick facades (others plaster)
+    density: float = field(default=0.85, metadata=bounded(lo=0, hi=1))  # probability that a frontage slot gets a building
+    height_min: float = field(default=6.0, metadata=bounded(lo=0, lo_open=True))  # metres
+    height_max: float = field(default=16.0, metadata=bounded(lo=0, lo_open=True))
+    width_min: float = field(default=8.0, metadata=bounded(lo=0, lo_open=True))
+    width_max: float = field(default=20.0, metadata=bounded(lo=0, lo_open=True))
+    depth_min: float = field(default=8.0, metadata=bounded(lo=0, lo_open=True))
+    depth_max: float = field(default=14.0, metadata=bounded(lo=0, lo_open=True))
+    setback_max: float = field(default=3.0, metadata=bounded(lo=0))  # extra distance behind the sidewalk
+    glass_fraction: float = field(default=0.6, metadata=bounded(lo=0, hi=1))  # fraction of windows that are reflective glass (others curtained)
+    storefront_fraction: float = field(default=0.3, metadata=bounded(lo=0, hi=1))  # buildings with a glass shop front on the ground floor
+    brick_fraction: float = field(default=0.4, metadata=bounded(lo=0, hi=1))  # brick facades (others plaster)
 
 
 @dataclass(frozen=True)
 class CarParams:
-    density: float = 0.6              # fraction of the parking strips filled
-    black_fraction: float = 0.15      # black-painted cars/vans the LiDAR barely returns (paper Fig. 3)
-    van_fraction: float = 0.12        # box vans / small trucks among them
+    density: float = field(default=0.6, metadata=bounded(lo=0, hi=1))  # fraction of the parking strips filled
+    black_fraction: float = field(default=0.15, metadata=bounded(lo=0, hi=1))  # black-painted cars/vans the LiDAR barely returns (paper Fig. 3)
+    van_fraction: float = field(default=0.12, metadata=bounded(lo=0, hi=1))  # box vans / small trucks among them
 
 
 @dataclass(frozen=True)
 class TreeParams:
-    spacing: float = 14.0             # metres between tree slots along each sidewalk
-    density: float = 0.6              # probability a slot gets a tree
+    spacing: float = field(default=14.0, metadata=bounded(lo=0, lo_open=True))  # metres between tree slots along each sidewalk
+    density: float = field(default=0.6, metadata=bounded(lo=0, hi=1))  # probability a slot gets a tree
 
 
 @dataclass(frozen=True)
 class PropParams:
-    pole_spacing: float = 30.0        # street-light poles, metres along each side
-    fence_fraction: float = 0.5       # probability a free frontage stretch gets a fence
+    pole_spacing: float = field(default=30.0, metadata=bounded(lo=0, lo_open=True))  # street-light poles, metres along each side
+    fence_fraction: float = field(default=0.5, metadata=bounded(lo=0, hi=1))  # probability a free frontage stretch gets a fence
 
 
 @dataclass(frozen=True)
 class LightParams:
-    sun_azimuth_deg: float = 40.0     # in the world x-z plane, from +z towards +x
-    sun_elevation_deg: float = 35.0
-    haze_distance: float = 220.0      # metres; transmittance exp(-d / haze_distance)
-    exposure: float = 1.0
+    sun_azimuth_deg: float = field(default=40.0, metadata=bounded(lo=-360, hi=360))  # in the world x-z plane, from +z towards +x
+    sun_elevation_deg: float = field(default=35.0, metadata=bounded(lo=-360, hi=360))
+    haze_distance: float = field(default=220.0, metadata=bounded(lo=0, lo_open=True))  # metres; transmittance exp(-d / haze_distance)
+    exposure: float = field(default=1.0, metadata=bounded(lo=0, lo_open=True))
 
 
 @dataclass(frozen=True)
@@ -150,15 +151,8 @@ def recipe_from_dict(data: dict, path: Path | str = "<recipe>") -> Recipe:
 
 
 def _section(cls, values: dict, path, section: str):
-    names = {f.name: f for f in dataclasses.fields(cls)}
-    out = {}
-    for key, value in values.items():
-        if key not in names:
-            raise MonoMapError(f"{path}: unknown key '{key}' in [{section}]")
-        if not isinstance(value, (int, float)) or isinstance(value, bool):
-            raise MonoMapError(f"{path}: [{section}] {key} must be a number")
-        out[key] = float(value)
-    return cls(**out)
+    """A [section] checked against its dataclass's declared fields (:mod:`mono_map.schema`)."""
+    return cls(**check_fields(cls, values, f"{path} [{section}]"))
 
 
 def _validate(r: Recipe, path) -> None:
