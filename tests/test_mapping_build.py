@@ -343,12 +343,12 @@ def test_cli_table_and_sweep(tiny_root, tmp_path, capsys):
               "--table", "--keeps", "0.5", "--model", "oracle", "--stride", "4"]
     assert cli_main(common) == 0
     text = capsys.readouterr().out
-    assert "building 6 maps in one pass" in text   # LiDAR-FOV, depth-gt, keeps 1.0/0.8/0.5, distribution
+    assert "building 7 maps in one pass" in text   # LiDAR-FOV, depth-gt, keeps 1.0/0.8/0.5, distribution, fused
     assert "| mono keep 0.8 |" in text and "| mono (keep 1.0) |" in text and "| mono keep 0.5 |" in text
     stem = "table_f0-3_res0.2_model-oracle"
     rows = json.loads((out / f"{stem}.json").read_text())["rows"]
     assert [r["method"] for r in rows] == ["LiDAR-FOV", "camera ground truth (depth-gt)", "mono (keep 1.0)",
-                                           "mono keep 0.8", "mono keep 0.5", "mono, distribution"]
+                                           "mono keep 0.8", "mono keep 0.5", "mono, distribution", "mono, fused"]
     assert rows[0]["accuracy"] == 1.0 and rows[0]["coverage"] == 1.0
     kept = [r["points_kept"] for r in rows[2:5]]
     assert kept[0] > kept[1] > kept[2] > 0  # keep 1.0 > 0.8 > 0.5
@@ -356,11 +356,11 @@ def test_cli_table_and_sweep(tiny_root, tmp_path, capsys):
         assert 0 < r["accuracy"] <= r["accuracy_covered"] <= 1 and r["memory_mb"] > 0
         assert 0 < r["surface_precision"] <= 1
     assert rows[1]["surface_precision"] == 1.0                  # depth-gt is its own surface
-    assert [r["ece"] is not None for r in rows] == [False, False, True, True, False, True]
+    assert [r["ece"] is not None for r in rows] == [False, False, True, True, False, True, False]
     for suffix in (".md", "_sweep.png", "_topdown.png", "_acc_memory.png", "_reliability.png"):
         assert (out / f"{stem}{suffix}").stat().st_size > 0
     n_bt = len(list(out.glob("*.bt")))
-    assert n_bt == 6 and len(list(out.glob("*.ot"))) == 3
+    assert n_bt == 7 and len(list(out.glob("*.ot"))) == 3
 
     assert cli_main(common + ["--reference", "lidar"]) == 0
     capsys.readouterr()
@@ -376,7 +376,9 @@ def test_cli_table_and_sweep(tiny_root, tmp_path, capsys):
     assert dist["integration"]["distribution"]["eps"] == 0.5
     assert cli_main(common + ["--eps", "0.3"]) == 0
     assert "rebuilding" not in capsys.readouterr().out
-    assert len(list(out.glob("*.bt"))) == n_bt + 2 and len(list(out.glob("mono-dist-eps0.3_*.ot"))) == 1
+    # (the fused map's free half is the distribution integration: another --eps is another fused map too)
+    assert len(list(out.glob("*.bt"))) == n_bt + 3 and len(list(out.glob("mono-dist-eps0.3_*.ot"))) == 1
+    assert len(list(out.glob("mono-fused-eps0.3_*.bt"))) == 1
 
     assert cli_main(common + ["--reference", "radar"]) == 2
     assert "--reference" in capsys.readouterr().err

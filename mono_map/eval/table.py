@@ -21,6 +21,7 @@ from mono_map.config import OctoMapConfig
 from mono_map.frames import FrameSelection
 from mono_map.io import prepare_output_dir
 from mono_map.mapping.distribution import DistributionConfig
+from mono_map.mapping.fused import FusedConfig
 from mono_map.mapping.jobs import MapJob
 from mono_map.paths import sequence_output_dir
 
@@ -31,8 +32,9 @@ CALIBRATED = ("mono (keep 1.0)", "mono keep 0.8", "mono, distribution")   # rows
 class TableJob:
     """What ``eval --table`` scores: sequence, data root, frames, maps' settings, reference.
 
-    paper_only: only the paper's rows (LiDAR-FOV, keep sweep), no depth-gt, distribution map or
-    calibration; distribution: the settings of the distribution-integrated row."""
+    paper_only: only the paper's rows (LiDAR-FOV, keep sweep), no depth-gt, distribution or fused map or
+    calibration; distribution: the settings of the distribution-integrated row (and the fused row's free
+    space); fused: the fused row's surface settings."""
 
     seq: str
     data_root: str | None
@@ -45,6 +47,7 @@ class TableJob:
     reference: str = "lidar-fov"
     paper_only: bool = False
     distribution: DistributionConfig = field(default_factory=DistributionConfig)
+    fused: FusedConfig = field(default_factory=FusedConfig)
 
 
 @dataclass
@@ -137,7 +140,7 @@ def run_table(job: TableJob, pictures=None) -> Table:
     def job_of(source, keep=1.0, stride=1, model=None, integrate="keep"):
         mono = source == "mono"
         return MapJob.of(seq, source, frames, keep=keep, integrate=integrate, distribution=dcfg, octomap=cfg,
-                         stride=stride, model=model, digest=digest if mono else None)
+                         stride=stride, model=model, digest=digest if mono else None, fused=job.fused)
 
     fov = job_of("lidar-fov")
     entries = [("LiDAR-FOV", "lidar-fov", None, fov)]
@@ -152,6 +155,8 @@ def run_table(job: TableJob, pictures=None) -> Table:
     if extended:
         entries.append(("mono, distribution", "mono-distribution", None,
                         job_of("mono", 1.0, job.stride, job.model, integrate="distribution")))
+        entries.append(("mono, fused", "mono-fused", None,
+                        job_of("mono", 1.0, job.stride, job.model, integrate="fused")))
     jobs = [(mj, label in calibrated) for label, _, _, mj in entries]
     if ref is not fov:
         jobs.insert(1, (ref, False))
@@ -162,7 +167,8 @@ def run_table(job: TableJob, pictures=None) -> Table:
     ref_tree = load_tree(ref_bt)                 # read once: its leaves are every row's reference
     ref_leaves = tree_leaves(ref_tree)
     gt_leaves = tree_leaves(load_tree(gt_bt)) if gt_bt is not None else None
-    pictured = ["LiDAR-FOV", "mono (keep 1.0)", "mono keep 0.8"] + (["mono, distribution"] if extended else [])
+    pictured = ["LiDAR-FOV", "mono (keep 1.0)", "mono keep 0.8"] + (["mono, distribution", "mono, fused"]
+                                                                       if extended else [])
     rows, pics, reliability = [], {}, {}
     for label, source, keep, mj in entries:
         bt = mj.path(out_dir)

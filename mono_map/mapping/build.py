@@ -25,12 +25,13 @@ import numpy as np
 from mono_map.config import OctoMapConfig
 from mono_map.depth.bins import DepthBins
 from mono_map.errors import MonoMapError
-from mono_map.mapping.distribution import (INTEGRATIONS, DistributionConfig, check_distribution_config,
+from mono_map.mapping.distribution import (INTEGRATIONS, CellUpdates, DistributionConfig, check_distribution_config,
                                            distribution_update, far_depth, narrow_bins, ray_distributions,
                                            unconditional_mass)
+from mono_map.mapping.fused import FusedConfig, SurfaceFusion, check_fused_config, due_surface_points, fuse_prediction
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.nested import KeepGroup, nested_frame
-from mono_map.mapping.octree import key_to_coord
+from mono_map.mapping.octree import coord_to_key, key_to_coord, pack_keys, sorted_unique, unpack_keys
 from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
 from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
 from mono_map.mapping.select import DEFAULT_KEEP, check_keep, check_rank, confidence_score, select_pixels, valid_pixels
@@ -119,11 +120,12 @@ def bin_edges(predictor) -> np.ndarray:
 
 
 def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np.ndarray, T_world_cam2: np.ndarray,
-                       edges: np.ndarray, dcfg: DistributionConfig, frame: int):
+                       edges: np.ndarray, dcfg: DistributionConfig, frame: int, free_only: bool = False):
     """Integrate the valid pixels' distributions of one prediction (``probs`` K×H×W, conditional on a
     surface within range as DepthPrediction's; optional ``p_beyond`` H×W, the probability of no surface
     within range). Each pixel's unconditional bin mass is (1 − p_beyond) · probs and p_beyond is mass
-    beyond every cell; pixels with nothing within range (p_beyond > 1 − eps) are skipped.
+    beyond every cell; pixels with nothing within range (p_beyond > 1 − eps) are skipped. ``free_only``:
+    only the free-space (negative) updates are applied (the free half of a fused map).
     Returns (FrameIntegration, number of rays)."""
     if pred.probs is None:
         raise MonoMapError(f"frame {frame}: the predictor gave no bin probabilities (--integrate distribution "
@@ -155,7 +157,18 @@ def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np
     upd = distribution_update(camera_origin(T_world_cam2), pixel_points_to_world(u, v, fd, K, T_world_cam2), fd,
                               p, pb, edges, integrator.cfg.resolution, integrator.hit, integrator.miss,
                               integrator.cfg.max_range, dcfg.min_update, dcfg.quantum, dcfg.snap_free)
+    if free_only:
+        upd = free_updates(upd)
     return integrator.insert_updates(upd), int(len(v))
+
+
+def free_updates(upd: CellUpdates) -> CellUpdates:
+    """The free-space (negative) updates of a frame's :class:`CellUpdates` (views when already split by sign)."""
+    if upd.n_free is not None:
+        m = upd.n_free
+        return CellUpdates(upd.keys[:m], upd.dl[:m], upd.n_rays, upd.lo, upd.hi, m)
+    neg = upd.dl < 0
+    return CellUpdates(upd.keys[neg], upd.dl[neg], upd.n_rays, upd.lo, upd.hi, int(neg.sum()))
 
 
 class FrameInputs:
@@ -218,13 +231,18 @@ class MapBuilder:
     def __init__(self, seq, source: str, keep: float, *, octomap: OctoMapConfig, stride: int, predictor,
                  depth_range: tuple[float, float], observers: Sequence[Callable], stats_every: int,
                  method: str, integrate: str, distribution: DistributionConfig, n_frames: int,
-                 rank: str = "entropy"):
+                 rank: str = "entropy", fused: FusedConfig | None = None):
         self.seq, self.source, self.keep, self.stride, self.rank = seq, source, keep, stride, rank
         self.predictor, self.depth_range, self.observers = predictor, depth_range, list(observers)
         self.stats_every, self.n_frames, self.dcfg = stats_every, n_frames, distribution
         self.integrate = integrate
-        self.dist_mode = source == "mono" and integrate == "distribution"
+        self.dist_mode = source == "mono" and integrate in ("distribution", "fused")
         self.integrator = MapIntegrator(octomap, method=method)
+        self.fcfg = fused or FusedConfig()
+        # fused: the surface's TSDF beside the free-space half; surface keys as last extracted (streaming)
+        self.fusion = (SurfaceFusion(self.fcfg, octomap.resolution)
+                       if source == "mono" and integrate == "fused" else None)
+        self.surface_points = 0                    # fused: surface hits inserted (cells, summed over frames)
         self.group: KeepGroup | None = None   # keep maps whose frames share one ray cast (share_ray_casts)
         self.edges = bin_edges(predictor) if self.dist_mode else None
         self.K = np.asarray(seq.calib.K2, dtype=np.float64)
@@ -248,7 +266,12 @@ class MapBuilder:
             m = self.lidar_measurement(i)
         if self.dist_mode:
             res, n_used = distribution_frame(self.integrator, m.prediction, m.valid, self.K, T_world_cam2,
-                                             self.edges, self.dcfg, i)
+                                             self.edges, self.dcfg, i, free_only=self.fusion is not None)
+            if self.fusion is not None:
+                fuse_prediction(self.fusion, m.prediction, m.valid, self.K, T_world_cam2, self.edges,
+                                self.dcfg.ray_step)
+                last = len(self.per_frame) + 1 == self.n_frames
+                res = self.surface_hits(res, due_surface_points(self.fusion, flush=last))
             m.kept_fraction = n_used / m.n_valid
         elif m.key_sets is not None:
             res, n_used = self.integrator.insert_key_sets(m.key_sets), int(np.count_nonzero(m.mask))
@@ -257,6 +280,22 @@ class MapBuilder:
         fstats = self.account(i, m, res, n_used, t_frame)
         if self.observers:
             self.notify(i, T_world_cam2, m, res, fstats)
+
+    def surface_hits(self, res, points: list[np.ndarray]):
+        """Insert the fused surface's hits (one array of world points per snapped frame: each frame's cells
+        hit once, OctoMap's hit update) and add the cells whose occupied state flipped to ``res`` (this frame's
+        FrameIntegration)."""
+        for pts in points:
+            if not len(pts):
+                continue
+            keys = unpack_keys(sorted_unique(pack_keys(coord_to_key(pts, self.integrator.cfg.resolution))))
+            hits = self.integrator.insert_updates(CellUpdates(keys, np.full(len(keys), self.integrator.hit,
+                                                                            np.float32), n_free=0))
+            self.integrator.frames -= 1              # not a frame of its own
+            res.became_occupied = np.concatenate([res.became_occupied, hits.became_occupied])
+            res.stopped_occupied = np.concatenate([res.stopped_occupied, hits.stopped_occupied])
+            self.surface_points += len(keys)
+        return res
 
     def mono_measurement(self, i: int, T_world_cam2: np.ndarray, inputs: FrameInputs) -> Measurement:
         """Predict image_2's depth distribution, keep the lowest-entropy pixels, back-project them."""
@@ -357,6 +396,7 @@ class MapBuilder:
             "source": self.source, "keep": self.keep if self.source == "mono" and not dist else None,
             "integrate": integrate if self.source == "mono" else None,
             "eps": dcfg.eps if dist else None, "temperature": dcfg.temperature if dist else None,
+            "fused": dict(self.fcfg.__dict__) if self.fusion is not None else None,
             "sequence": getattr(self.seq, "name", None),
             "frames": [int(frames[0]), int(frames[-1]) + 1], "n_frames": len(frames), "stride": self.stride,
             "resolution": cfg.resolution, "prob_hit": cfg.prob_hit, "prob_miss": cfg.prob_miss,
@@ -369,6 +409,10 @@ class MapBuilder:
             "wall_s": wall, "frames_per_s": len(frames) / wall if wall > 0 else 0.0,
             "integration": self.integrator.method,
         }
+        if self.fusion is not None:
+            stats["surface_hits"] = int(self.surface_points)
+            stats["tsdf_blocks"] = self.fusion.n_blocks
+            self.fusion = None
         tree = self.integrator.finish()          # the mirror is freed before the tree is made: lower peak RSS
         stats["tree_seconds"] = self.integrator.sync_seconds
         return BuildResult(tree=tree, stats=stats, per_frame=self.per_frame, integrator=self.integrator)
@@ -378,7 +422,8 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
                  octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None, model: str | None = None,
                  depth_range: tuple[float, float] | None = None, observers: Sequence[Callable] = (),
                  stats_every: int = 100, method: str = "batched", integrate: str = "keep",
-                 distribution: DistributionConfig | None = None, rank: str = "entropy") -> MapBuilder:
+                 distribution: DistributionConfig | None = None, rank: str = "entropy",
+                 fused: FusedConfig | None = None) -> MapBuilder:
     """A checked :class:`MapBuilder` for ``n_frames`` frames (arguments as :func:`build_map`'s).
     Raises MonoMapError on bad input."""
     if source not in SOURCES:
@@ -389,10 +434,11 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
         raise MonoMapError(f"--stride: must be a positive integer, got {stride}")
     if integrate not in INTEGRATIONS:
         raise MonoMapError(f"--integrate: unknown integration {integrate!r} (choose from {', '.join(INTEGRATIONS)})")
-    dist_mode = source == "mono" and integrate == "distribution"
+    dist_mode = source == "mono" and integrate in ("distribution", "fused")
     dcfg = check_distribution_config(distribution or DistributionConfig())
+    fcfg = check_fused_config(fused or FusedConfig())
     if dist_mode and method != "batched":
-        raise MonoMapError("--integrate distribution: needs the batched integration method")
+        raise MonoMapError(f"--integrate {integrate}: needs the batched integration method")
     if source == "mono" and not dist_mode:
         keep = check_keep(keep)
     rank = check_rank(rank)
@@ -403,7 +449,7 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
         depth_range = (float(bins.min_depth), float(bins.max_depth))
     return MapBuilder(seq, source, keep, octomap=cfg, stride=stride, predictor=predictor,
                       depth_range=depth_range, observers=observers, stats_every=stats_every, method=method,
-                      integrate=integrate, distribution=dcfg, n_frames=n_frames, rank=rank)
+                      integrate=integrate, distribution=dcfg, n_frames=n_frames, rank=rank, fused=fcfg)
 
 
 def probs_steps(builders: Sequence[MapBuilder]) -> dict[int, int]:
@@ -488,14 +534,16 @@ def build_map(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, frames: 
               model: str | None = None, depth_range: tuple[float, float] | None = None,
               observers: Sequence[Callable] = (), stats_every: int = 100, method: str = "batched",
               show_progress: bool = True, integrate: str = "keep",
-              distribution: DistributionConfig | None = None, rank: str = "entropy") -> BuildResult:
+              distribution: DistributionConfig | None = None, rank: str = "entropy",
+              fused: FusedConfig | None = None) -> BuildResult:
     """Integrate ``frames`` of ``seq`` into a new OctoMap.
 
     source: "mono" (depth predictor, ``keep`` lowest-entropy fraction of valid pixels), "depth-gt"
     (ground-truth depth_2, every pixel in the bin range), "lidar" or "lidar-fov" (``keep`` and the
     predictor are ignored). integrate (mono only): "keep" (the paper: kept pixels' expected depths
-    as end points) or "distribution" (every valid pixel's distribution, ``distribution`` settings;
-    ``keep`` is ignored). rank (keep maps): "entropy" (the paper's) or "metric" (entropy + log depth,
+    as end points), "distribution" (every valid pixel's distribution, ``distribution`` settings;
+    ``keep`` is ignored) or "fused" (the distribution's free space + the surface fused across views,
+    ``fused`` settings: :mod:`mono_map.mapping.fused`). rank (keep maps): "entropy" (the paper's) or "metric" (entropy + log depth,
     :func:`mono_map.mapping.select.confidence_score`). predictor: anything with
     ``predict(image) -> DepthPrediction`` or ``predict_frame(seq, i, image)``; if None,
     ``load_predictor(model)`` (None → the shipped checkpoint). depth_range: valid predicted
@@ -507,7 +555,7 @@ def build_map(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, frames: 
     return build_maps(seq, [dict(source=source, keep=keep, octomap=octomap, stride=stride, predictor=predictor,
                                  model=model, depth_range=depth_range, observers=observers,
                                  stats_every=stats_every, method=method, integrate=integrate,
-                                 distribution=distribution, rank=rank)],
+                                 distribution=distribution, rank=rank, fused=fused)],
                       frames=frames, show_progress=show_progress)[0]
 
 

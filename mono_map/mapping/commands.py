@@ -31,10 +31,11 @@ def _add_integration_args(p: argparse.ArgumentParser) -> None:
 
     d = DistributionConfig()
     g = p.add_argument_group("integration of monocular depth")
-    g.add_argument("--integrate", default="keep", choices=("keep", "distribution"),
+    g.add_argument("--integrate", default="keep", choices=("keep", "distribution", "fused"),
                    help="keep: the paper's cut, the --keep lowest-entropy pixels' expected depths as end points "
                         "(default); distribution: every valid pixel's whole depth distribution sets the expected "
-                        "OctoMap update of each cell along its ray (--keep ignored)")
+                        "OctoMap update of each cell along its ray (--keep ignored); fused: the distribution's free "
+                        "space + a thin surface fused across views (uncertainty-weighted TSDF; docs/fused.md)")
     g.add_argument("--eps", type=float, default=d.eps,
                    help=f"distribution: rays stop where P(surface beyond) < eps (default {d.eps:g})")
     g.add_argument("--temperature", type=float, default=d.temperature,
@@ -53,6 +54,33 @@ def _add_integration_args(p: argparse.ArgumentParser) -> None:
                         f"(default {'on' if d.snap_free else 'off'})")
     g.add_argument("--ray-step", type=int, default=d.ray_step,
                    help=f"distribution: one ray every N-th pixel row and column (default {d.ray_step})")
+    from mono_map.mapping.fused import FusedConfig
+
+    f = FusedConfig()
+    g = p.add_argument_group("fused surface (--integrate fused; the free space uses the distribution options)")
+    g.add_argument("--fused-spread-ref", type=float, default=f.spread_ref,
+                   help=f"log-depth spread at which a pixel's fusion weight halves (default {f.spread_ref:g})")
+    g.add_argument("--fused-min-weight", type=float, default=f.min_weight,
+                   help=f"summed weight a cell needs to be surface (default {f.min_weight:g}; ~ confident views)")
+    g.add_argument("--fused-trunc-sigma", type=float, default=f.trunc_sigma,
+                   help=f"truncation band in metric spreads (default {f.trunc_sigma:g})")
+    g.add_argument("--fused-trunc-min", type=float, default=f.trunc_min,
+                   help=f"narrowest truncation band, cells (default {f.trunc_min:g})")
+    g.add_argument("--fused-trunc-max", type=float, default=f.trunc_max,
+                   help=f"widest truncation band, metres (default {f.trunc_max:g})")
+    g.add_argument("--fused-max-depth", type=float, default=f.max_depth,
+                   help=f"pixels farther than this (metres) are not fused (default {f.max_depth:g})")
+    g.add_argument("--fused-max-spread", type=float, default=f.max_spread,
+                   help=f"pixels with a wider log-depth spread are not fused (default {f.max_spread:g})")
+    g.add_argument("--fused-trunc-behind", type=float, default=f.trunc_behind,
+                   help=f"cells up to this many bands behind a pixel's depth are fused (default {f.trunc_behind:g})")
+    g.add_argument("--fused-lag", type=int, default=f.lag,
+                   help=f"frames after which a frame's pixels are snapped to the fused surface (default {f.lag})")
+    g.add_argument("--fused-snap-window", type=float, default=f.snap_window,
+                   help=f"how far (metres) from a pixel's expected depth its ray looks for the fused surface "
+                        f"(default {f.snap_window:g})")
+    g.add_argument("--fused-snap-step", type=int, default=f.snap_step,
+                   help=f"snap every N-th ray of the --ray-step grid (default {f.snap_step})")
 
 
 def distribution_config(args):
@@ -63,6 +91,17 @@ def distribution_config(args):
                                                         ray_step=args.ray_step, min_update=args.min_update,
                                                         bin_spread=args.bin_spread, quantum=args.quantum,
                                                         snap_free=args.snap_free))
+
+
+def fused_config(args):
+    """The ``--integrate fused`` surface settings of the options, checked (MonoMapError naming the option)."""
+    from mono_map.mapping.fused import FusedConfig, check_fused_config
+
+    return check_fused_config(FusedConfig(
+        spread_ref=args.fused_spread_ref, min_weight=args.fused_min_weight, trunc_sigma=args.fused_trunc_sigma,
+        trunc_min=args.fused_trunc_min, trunc_max=args.fused_trunc_max, max_depth=args.fused_max_depth,
+        max_spread=args.fused_max_spread, trunc_behind=args.fused_trunc_behind, lag=args.fused_lag,
+        snap_window=args.fused_snap_window, snap_step=args.fused_snap_step))
 
 
 def register(subparsers) -> None:
@@ -176,6 +215,7 @@ def run_build(args) -> int:
     if args.source not in BUILD_SOURCES:
         raise MonoMapError(f"--source: unknown source {args.source!r} (choose from {', '.join(BUILD_SOURCES)})")
     dcfg = distribution_config(args)
+    fcfg = fused_config(args)
     if args.source == "mono":
         if args.integrate == "keep":
             check_keep(args.keep)
@@ -203,12 +243,12 @@ def run_build(args) -> int:
         raise MonoMapError(f"--source depth-gt: {seq.depth_dir} has no ground-truth depth for frame "
                            f"{frames[0]} (a synthetic sequence has it)")
     job = MapJob.of(seq, args.source, frames, keep=args.keep, integrate=args.integrate, distribution=dcfg,
-                    octomap=cfg, stride=args.stride, model=args.model, digest=digest)
+                    octomap=cfg, stride=args.stride, model=args.model, digest=digest, fused=fcfg)
     check_memory(seq, job)
     how = ""
     if args.source == "mono":
         how = (f", keep {args.keep:g}" if args.integrate == "keep" else
-               f", distribution integration (eps {dcfg.eps:g}, temperature {dcfg.temperature:g})")
+               f", {args.integrate} integration (eps {dcfg.eps:g}, temperature {dcfg.temperature:g})")
     print(f"mono-map build: sequence {args.seq}, {selection.describe(frames)}, source {args.source}{how}, "
           f"{cfg.resolution:g} m cells", flush=True)
     logger = None
@@ -280,6 +320,7 @@ def check_eval_options(args):
     check_keep(args.keep)
     cfg = octomap_config(args)
     dcfg = distribution_config(args)
+    fused_config(args)
     selection = parse_frames(args.frames, default=first_frames(DEFAULT_FRAMES))
     if args.stride < 1:
         raise MonoMapError(f"--stride: must be a positive integer, got {args.stride}")
@@ -304,9 +345,9 @@ def default_map_path(args, cfg, dcfg, selection) -> Path:
     seq = prepare_sequence(args.data_root, args.seq, selection, render=False)
     frames = selection.resolve(len(seq))
     job = MapJob.of(seq, "mono", frames, keep=args.keep, integrate=args.integrate, distribution=dcfg, octomap=cfg,
-                    stride=args.stride, model=args.model)
+                    stride=args.stride, model=args.model, fused=fused_config(args))
     path = job.path(sequence_output_dir(args.out, args.seq))
-    how = f"--keep {args.keep:g}" if args.integrate == "keep" else "--integrate distribution"
+    how = f"--keep {args.keep:g}" if args.integrate == "keep" else f"--integrate {args.integrate}"
     if not path.is_file():
         raise MonoMapError(f"--map: none given, and {path} does not exist yet "
                            f"(build it: mono-map build --seq {args.seq} {how}, or pass --map)")
@@ -348,7 +389,7 @@ def run_eval(args) -> int:
         return run_table(TableJob(seq=args.seq, data_root=args.data_root, frames=selection, out=args.out,
                                   keeps=parse_keeps(args.keeps), stride=args.stride, model=args.model,
                                   octomap=cfg, reference=args.reference, paper_only=args.paper_only,
-                                  distribution=dcfg))
+                                  distribution=dcfg, fused=fused_config(args)))
     from mono_map.data.prepare import prepare_sequence
     from mono_map.eval.map_metrics import evaluate_map
     from mono_map.mapping.octree import load_tree

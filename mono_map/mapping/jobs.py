@@ -22,6 +22,7 @@ from pathlib import Path
 from mono_map.config import OctoMapConfig
 from mono_map.frames import frames_tag
 from mono_map.mapping.distribution import DistributionConfig
+from mono_map.mapping.fused import FusedConfig
 
 # rerun's file sink blocks for good on a full disk: a recording stops while this much is still free
 RRD_MIN_FREE = 32 << 20
@@ -124,11 +125,13 @@ class MapJob:
     precision: str | None = None
     synthetic: tuple[tuple[str, object], ...] = ()
     data: tuple[tuple[str, str], ...] = ()   # what the frames hold (mono_map.data.fingerprint): part -> hash
+    fused: FusedConfig = field(default_factory=FusedConfig)
 
     @classmethod
     def of(cls, seq, source: str, frames, *, keep: float = 1.0, integrate: str = "keep",
            distribution: DistributionConfig | None = None, octomap: OctoMapConfig | None = None,
-           stride: int = 1, model: str | None = None, digest: str | None = None) -> "MapJob":
+           stride: int = 1, model: str | None = None, digest: str | None = None,
+           fused: FusedConfig | None = None) -> "MapJob":
         """The job of building ``frames`` of the open sequence ``seq`` (its root, name and synthetic
         marker are read from it); ``digest`` defaults to :func:`model_digest` of ``model`` (mono only)."""
         mono = source == "mono"
@@ -142,7 +145,8 @@ class MapJob:
                    distribution=distribution or DistributionConfig(), octomap=octomap or OctoMapConfig(),
                    stride=int(stride), model=model if mono else None,
                    digest=(digest or model_digest(model)) if mono else None, precision=precision,
-                   synthetic=synthetic_marker(seq), data=data_fingerprint(seq, source, frames))
+                   synthetic=synthetic_marker(seq), data=data_fingerprint(seq, source, frames),
+                   fused=fused or FusedConfig())
 
     @property
     def mono(self) -> bool:
@@ -150,14 +154,21 @@ class MapJob:
 
     @property
     def distributional(self) -> bool:
-        """A mono map integrating whole distributions (``--integrate distribution``; keep ignored)."""
-        return self.mono and self.integrate == "distribution"
+        """A mono map integrating whole distributions (``--integrate distribution`` or ``fused``; keep ignored)."""
+        return self.mono and self.integrate in ("distribution", "fused")
+
+    @property
+    def is_fused(self) -> bool:
+        """A mono map with ``--integrate fused`` (the distribution's free space + the fused surface)."""
+        return self.mono and self.integrate == "fused"
 
     def key(self) -> dict:
         """Everything that determines the map, as JSON: stored in its .json, compared before reuse."""
         camera = self.source in ("mono", "depth-gt")
         integration = {"method": "batched", "mode": self.integrate if self.mono else None,
                        "distribution": dataclasses.asdict(self.distribution) if self.distributional else None}
+        if self.is_fused:                 # only fused maps carry the key: the other maps' keys stay as they were
+            integration["fused"] = dataclasses.asdict(self.fused)
         return {"data_root": self.data_root, "sequence": self.sequence, "synthetic": dict(self.synthetic) or None,
                 "data": dict(self.data) or None,
                 "source": self.source, "keep": self.keep if self.mono and not self.distributional else None,
@@ -173,13 +184,16 @@ class MapJob:
         """A file stem that encodes every setting changing the map (the .json's key decides reuse)."""
         if self.distributional:
             dd, dcfg = DistributionConfig(), self.distribution
-            parts = ["mono-dist" + (f"-eps{dcfg.eps:g}" if dcfg.eps != dd.eps else "")
+            parts = [("mono-fused" if self.is_fused else "mono-dist") + (f"-eps{dcfg.eps:g}" if dcfg.eps != dd.eps else "")
                      + (f"-temp{dcfg.temperature:g}" if dcfg.temperature != dd.temperature else "")
                      + (f"-step{dcfg.ray_step}" if dcfg.ray_step != dd.ray_step else "")
                      + (f"-min{dcfg.min_update:g}" if dcfg.min_update != dd.min_update else "")
                      + (f"-spread{dcfg.bin_spread:g}" if dcfg.bin_spread != dd.bin_spread else "")
                      + (f"-q{dcfg.quantum:g}" if dcfg.quantum != dd.quantum else "")
                      + (("-snap" if dcfg.snap_free else "-nosnap") if dcfg.snap_free != dd.snap_free else "")]
+            if self.is_fused and self.fused != FusedConfig():
+                parts.append("fused-" + hashlib.sha256(json.dumps(dataclasses.asdict(self.fused), sort_keys=True)
+                                                       .encode()).hexdigest()[:8])
         else:
             parts = [self.source if not self.mono else f"mono-keep{self.keep:g}"]
         if self.mono and self.model:
@@ -364,7 +378,7 @@ def build_and_write_all(requests: list[MapRequest], seq, out_dir: Path, predicto
             job = r.job
             maps.append(dict(source=job.source, keep=job.keep, octomap=job.octomap, stride=job.stride,
                              predictor=predictor if job.mono else None, model=job.model, observers=observers,
-                             integrate=job.integrate, distribution=job.distribution))
+                             integrate=job.integrate, distribution=job.distribution, fused=job.fused))
             outputs.append((bt, temp_of))
         builders = make_builders(seq, maps, len(frames))
         try:

@@ -1,0 +1,301 @@
+"""Fused integration (``--integrate fused``): the frames' depth distributions fused across views before OctoMap.
+
+A map gets two halves:
+
+* **free space** — the distribution integration's calibrated expected free-space update
+  (:mod:`mono_map.mapping.distribution`; only its negative, free-space updates are applied);
+* **surface** — an uncertainty-weighted truncated signed-distance field (TSDF) in open3d's tensor
+  ``VoxelBlockGrid`` (sparse 8³ blocks around the observed surfaces: memory grows with the surface, not
+  the volume), fused from every frame's per-pixel expected depth μ and the distribution's spread. Each
+  pixel's log-depth spread σ_log (bin probabilities over the log bin centres) sets its weight
+  w = 1 / (1 + (σ_log / ``spread_ref``)²) (a confident pixel counts ~1, a two-mode or smeared one ~0)
+  and its truncation band τ = clip(``trunc_sigma`` · μ · σ_log, ``trunc_min`` · res, ``trunc_max``)
+  (metres). Every voxel of the blocks near the frame's surface (its cell centre) is projected into the
+  ray grid; where the signed distance along the optical axis sdf = μ − z ≥ −τ, the voxel's weighted
+  mean of clip(sdf, −τ, τ) / ``trunc_max`` and its summed weight are updated. The surface is the
+  TSDF's zero crossing between neighbouring voxels whose summed weights reach ``min_weight``
+  (open3d's ``extract_point_cloud``), each crossing marking the voxel nearer to it: one cell thick.
+
+The OctoMap's cells on the fused surface are set occupied (log-odds of ``prob_hit``, whatever the free
+half said: rays ending on a surface never free it), every other cell keeps its free-space value.
+Voxel (i, j, k) of the grid is OctoMap key (i, j, k) + 32768: the signed distance is evaluated at the
+cell's centre. Settings chosen on training town 06 (``tools/tune_fused.py``), never on 00.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mono_map.errors import MonoMapError
+from mono_map.mapping.octree import TREE_MAX_VAL, sorted_unique, pack_keys, unpack_keys
+
+
+@dataclass(frozen=True)
+class FusedConfig:
+    """Settings of the fused surface (``--integrate fused``; the free half uses DistributionConfig).
+
+    spread_ref: log-depth spread at which a pixel's weight halves; min_weight: summed weight a voxel needs
+    on both sides of a zero crossing; trunc_sigma, trunc_min (cells), trunc_max (metres): the truncation
+    band; trunc_behind: voxels up to this many bands behind a pixel's depth are updated (with −τ: at
+    grazing angles, e.g. the road far ahead, the cells just under the surface lie metres behind it along the
+    optical axis); max_depth: pixels whose expected depth is farther (metres) are not fused (free space unaffected);
+    max_spread: pixels whose log-depth spread is larger are not fused; lag: a frame's pixels are snapped to the
+    fused surface this many frames after it was fused (the views that follow it are in the surface; the
+    end of the build snaps the rest); snap_window: how far (metres) from a pixel's expected depth the
+    surface is looked for along its ray; snap_step: every snap_step-th pixel row and column of the ray grid is
+    snapped (each still hits a cell of its own at 0.2 m cells beyond a few metres)."""
+
+    # chosen on training town 06 frames 0-199 (docs/fused.md), never on 00
+    spread_ref: float = 0.1
+    min_weight: float = 2.0
+    trunc_sigma: float = 1.0
+    trunc_min: float = 3.0
+    trunc_max: float = 1.0
+    trunc_behind: float = 3.0
+    max_depth: float = 40.0
+    max_spread: float = 0.5
+    lag: int = 10
+    snap_window: float = 1.0
+    snap_step: int = 2
+
+
+def check_fused_config(cfg: FusedConfig) -> FusedConfig:
+    """``cfg`` if every setting is usable, else MonoMapError naming the option (one line)."""
+    def positive(name, v):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise MonoMapError(f"--{name}: must be a positive number, got {v}")
+
+    positive("fused-spread-ref", cfg.spread_ref)
+    positive("fused-min-weight", cfg.min_weight)
+    positive("fused-trunc-sigma", cfg.trunc_sigma)
+    positive("fused-trunc-min", cfg.trunc_min)
+    positive("fused-trunc-max", cfg.trunc_max)
+    if not (math.isfinite(cfg.trunc_behind) and cfg.trunc_behind >= 1):
+        raise MonoMapError(f"--fused-trunc-behind: must be a number >= 1 (bands), got {cfg.trunc_behind}")
+    positive("fused-max-depth", cfg.max_depth)
+    positive("fused-max-spread", cfg.max_spread)
+    positive("fused-snap-window", cfg.snap_window)
+    if int(cfg.snap_step) != cfg.snap_step or cfg.snap_step < 1:
+        raise MonoMapError(f"--fused-snap-step: must be a positive integer, got {cfg.snap_step}")
+    if int(cfg.lag) != cfg.lag or cfg.lag < 0:
+        raise MonoMapError(f"--fused-lag: must be a non-negative integer (frames), got {cfg.lag}")
+    return cfg
+
+
+def log_spread(probs: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Per-pixel standard deviation of log-depth (float32, shape of ``probs`` without its first axis) of bin
+    probabilities ``probs`` (K, ...) over bins with ``edges`` (K+1,) metres, each bin's mass at its log
+    centre (the bins' own width is not added: a point mass in one bin has spread 0). Rows summing to 0: 0."""
+    p = np.asarray(probs, dtype=np.float32)
+    le = np.log(np.asarray(edges, dtype=np.float64))
+    lc = (0.5 * (le[:-1] + le[1:])).astype(np.float32).reshape((-1,) + (1,) * (p.ndim - 1))
+    mass = p.sum(axis=0)
+    safe = np.where(mass > 0, mass, 1.0)
+    m1 = (p * lc).sum(axis=0) / safe
+    m2 = (p * (lc * lc)).sum(axis=0) / safe
+    return np.sqrt(np.maximum(m2 - m1 * m1, 0.0)).astype(np.float32)
+
+
+def pixel_weights(spread: np.ndarray, cfg: FusedConfig) -> np.ndarray:
+    """Fusion weight of pixels with log-depth spread ``spread``: 1 / (1 + (spread / spread_ref)²) (float32)."""
+    s = np.asarray(spread, dtype=np.float32) / np.float32(cfg.spread_ref)
+    return (1.0 / (1.0 + s * s)).astype(np.float32)
+
+
+class SurfaceFusion:
+    """The uncertainty-weighted TSDF of a build (open3d ``VoxelBlockGrid``, CPU, voxel = OctoMap cell)."""
+
+    BLOCK = 8
+
+    def __init__(self, cfg: FusedConfig, resolution: float, initial_blocks: int = 4096):
+        import open3d as o3d
+        import open3d.core as o3c
+
+        self.cfg, self.res = check_fused_config(cfg), float(resolution)
+        self.o3d, self.o3c = o3d, o3c
+        self.device = o3c.Device("CPU:0")
+        self.vbg = o3d.t.geometry.VoxelBlockGrid(
+            attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32), attr_channels=((1), (1)),
+            voxel_size=self.res, block_resolution=self.BLOCK, block_count=int(initial_blocks), device=self.device)
+        self.frames = 0
+        self.pending: list[tuple] = []     # frames fused, not yet snapped: (depth grid, K of the grid, pose)
+
+    def integrate(self, depth: np.ndarray, weight: np.ndarray, trunc: np.ndarray, K: np.ndarray,
+                  T_world_cam: np.ndarray) -> int:
+        """Fuse one depth image: ``depth`` (H, W) float32 z-depth in metres (0 = no surface), per-pixel
+        ``weight`` (H, W) and truncation ``trunc`` (H, W, metres), pinhole ``K`` (3×3) of this pixel grid and
+        the camera pose ``T_world_cam`` (4×4). Returns the number of voxels updated."""
+        o3d, o3c = self.o3d, self.o3c
+        depth = np.ascontiguousarray(depth, dtype=np.float32)
+        self.frames += 1
+        if not (depth > 0).any():
+            return 0
+        h, w = depth.shape
+        T_cam_world = np.linalg.inv(np.asarray(T_world_cam, dtype=np.float64))
+        intr = o3c.Tensor(np.asarray(K, dtype=np.float64))
+        # blocks are activated at the voxel lattice points; the cell centres sit half a voxel further: one
+        # voxel of margin on top of the widest truncation
+        mult = float(math.ceil(self.cfg.trunc_behind * float(np.max(trunc[depth > 0])) / self.res) + 1)
+        coords = self.vbg.compute_unique_block_coordinates(
+            o3d.t.geometry.Image(o3c.Tensor(depth)), intr, o3c.Tensor(T_cam_world), 1.0,
+            float(depth.max()) + 1.0, mult)
+        hm = self.vbg.hashmap()
+        hm.activate(coords)
+        buf, _ = hm.find(coords)
+        vcoords, vidx = self.vbg.voxel_coordinates_and_flattened_indices(buf.to(o3c.int32))
+        # the cells' centres (world, metres) in the camera; float32 (the offset keeps them near the camera)
+        R, t = T_cam_world[:3, :3].astype(np.float32), (T_cam_world[:3, 3] + 0.5 * self.res
+                                                          * T_cam_world[:3, :3].sum(axis=1)).astype(np.float32)
+        idx = vidx.numpy()
+        pc = vcoords.numpy() @ R.T + t
+        z = pc[:, 2]
+        front = z > 1e-3
+        zs = np.where(front, z, np.float32(1.0))
+        u = np.rint(np.float32(K[0, 0]) * pc[:, 0] / zs + np.float32(K[0, 2])).astype(np.int64)
+        v = np.rint(np.float32(K[1, 1]) * pc[:, 1] / zs + np.float32(K[1, 2])).astype(np.int64)
+        ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        sel = np.flatnonzero(ok)
+        u, v, z = u[sel], v[sel], z[sel]
+        d = depth[v, u]
+        tau = trunc[v, u]
+        sdf = d - z
+        keep = (d > 0) & (sdf >= -self.cfg.trunc_behind * tau)
+        sel, sdf, tau = sel[keep], sdf[keep], tau[keep]
+        wgt = weight[v[keep], u[keep]]
+        t_new = (np.clip(sdf, -tau, tau) / self.cfg.trunc_max).astype(np.float32)
+        tsdf = self.vbg.attribute("tsdf").reshape((-1,)).numpy()     # views of open3d's buffers
+        wsum = self.vbg.attribute("weight").reshape((-1,)).numpy()
+        i = idx[sel]
+        w_old = wsum[i]
+        w_new = w_old + wgt
+        tsdf[i] = (tsdf[i] * w_old + t_new * wgt) / np.where(w_new > 0, w_new, 1.0)
+        wsum[i] = w_new
+        return int(len(i))
+
+    DENSE_BLOCKS = 20_000      # a frame's sample box of blocks up to this size is looked up through a dense table
+
+    def sample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(tsdf, summed weight) float32 of the cells holding world ``points`` (N, 3) metres; weight 0 where the
+        TSDF has no voxel."""
+        o3c = self.o3c
+        lat = np.floor(np.asarray(points, dtype=np.float64) / self.res).astype(np.int64)   # the cell = the voxel
+        blk = lat >> 3
+        loc = lat - (blk << 3)
+        tsdf_out = np.zeros(len(lat), np.float32)
+        w_out = np.zeros(len(lat), np.float32)
+        if len(lat) == 0 or self.n_blocks == 0:
+            return tsdf_out, w_out
+        lo, hi = blk.min(axis=0), blk.max(axis=0)
+        dims = hi - lo + 1
+        if int(np.prod(dims)) <= self.DENSE_BLOCKS:       # every block of the box looked up once, then indexed
+            grid = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi)], indexing="ij"), -1)
+            query = grid.reshape(-1, 3)
+            where = np.ravel_multi_index(tuple((blk - lo).T), tuple(dims))
+        else:                                             # the distinct blocks, by sorting
+            codes = pack_keys(blk + TREE_MAX_VAL)
+            uniq = sorted_unique(codes)                   # (np.unique's hash path is ~100x slower on these codes)
+            where = np.searchsorted(uniq, codes)
+            query = unpack_keys(uniq) - TREE_MAX_VAL
+        buf, found = self.vbg.hashmap().find(o3c.Tensor(np.ascontiguousarray(query, dtype=np.int32)))
+        buf = np.where(found.numpy().astype(bool).reshape(-1), buf.numpy().astype(np.int64).reshape(-1), -1)
+        b = buf[where]
+        ok = b >= 0
+        flat = b[ok] * self.BLOCK ** 3 + loc[ok, 0] + self.BLOCK * loc[ok, 1] + self.BLOCK ** 2 * loc[ok, 2]
+        tsdf_out[ok] = self.vbg.attribute("tsdf").reshape((-1,)).numpy()[flat]
+        w_out[ok] = self.vbg.attribute("weight").reshape((-1,)).numpy()[flat]
+        return tsdf_out, w_out
+
+    def snap_depths(self, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
+                    window: float, min_weight: float | None = None) -> np.ndarray:
+        """Each pixel's depth moved to the fused surface along its ray: the TSDF's zero crossing (from + in
+        front to − behind, both cells with summed weight ≥ ``min_weight``) nearest to ``depth`` (H, W, metres, 0 =
+        none) within ±``window`` metres, sampled every cell size along the optical axis (each sample reads its
+        cell's signed distance, moved from the cell's centre to the sample along the axis) and interpolated
+        linearly; 0 where there is none (float32 (H, W))."""
+        thr = np.float32(self.cfg.min_weight if min_weight is None else min_weight)
+        depth = np.asarray(depth, dtype=np.float32)
+        v, u = np.nonzero(depth > 0)
+        out = np.zeros(depth.shape, np.float32)
+        if len(v) == 0:
+            return out
+        n = int(math.ceil(window / self.res))
+        offs = np.arange(-n, n + 1, dtype=np.float64) * self.res
+        z = depth[v, u].astype(np.float64)[:, None] + offs[None, :]            # (P, S) sample depths
+        x = (u[:, None] - K[0, 2]) / K[0, 0] * z
+        y = (v[:, None] - K[1, 2]) / K[1, 1] * z
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        pts = (np.stack([x, y, z], axis=-1) @ T[:3, :3].T + T[:3, 3]).reshape(-1, 3)
+        t, w = self.sample(pts)
+        # the cell's value holds at its centre: moved to the sample along this camera's axis (first order)
+        centres = (np.floor(pts / self.res) + 0.5) * self.res
+        zc = (centres - T[:3, 3]) @ T[:3, 2]                   # the centres' depths in this camera
+        t = t.reshape(z.shape) * np.float32(self.cfg.trunc_max) - (z - zc.reshape(z.shape))
+        w = w.reshape(z.shape)
+        good = (w >= thr) & (z > 0)
+        cross = good[:, :-1] & good[:, 1:] & (t[:, :-1] >= 0) & (t[:, 1:] < 0)
+        # the crossing nearest the pixel's own depth (offset index n)
+        dist = np.where(cross, np.abs(np.arange(2 * n)[None, :] + 0.5 - n), np.inf)
+        k = dist.argmin(axis=1)
+        has = np.isfinite(dist[np.arange(len(k)), k])
+        r = np.flatnonzero(has)
+        k = k[r]
+        t0, t1 = t[r, k], t[r, k + 1]
+        zc = z[r, k] + (z[r, k + 1] - z[r, k]) * (t0 / np.where(t0 - t1 > 0, t0 - t1, 1.0))
+        out[v[r], u[r]] = zc.astype(np.float32)
+        return out
+
+    @property
+    def n_blocks(self) -> int:
+        return int(self.vbg.hashmap().size())
+
+
+def fuse_prediction(fusion: SurfaceFusion, pred, valid: np.ndarray, K: np.ndarray, T_world_cam2: np.ndarray,
+                    edges: np.ndarray, ray_step: int) -> int:
+    """Fuse one frame's prediction (``pred.depth`` H×W expected depth, ``pred.probs`` K×H'×W' bin probabilities
+    every ``pred.probs_step`` pixels, optional ``pred.p_beyond`` H×W) at every ``ray_step``-th pixel row and
+    column of the ``valid`` (H×W bool) pixels into ``fusion``; ``K``: image_2's 3×3 intrinsics. Pixels more
+    likely beyond range than not, farther than ``max_depth`` or spread wider than ``max_spread`` are left out.
+    Returns the number of pixels fused."""
+    cfg = fusion.cfg
+    s, ps = int(ray_step), int(getattr(pred, "probs_step", 1))
+    if s % ps:
+        raise MonoMapError(f"--integrate fused: bin probabilities every {ps} pixels cannot serve rays every {s}")
+    probs = np.asarray(pred.probs)[:, ::s // ps, ::s // ps]
+    depth = np.asarray(pred.depth, dtype=np.float32)[::s, ::s]
+    ok = np.asarray(valid, dtype=bool)[::s, ::s]
+    if probs.shape[1:] != depth.shape:
+        raise MonoMapError(f"--integrate fused: bin probabilities {probs.shape} do not match the ray grid {depth.shape}")
+    pb = getattr(pred, "p_beyond", None)
+    if pb is not None:
+        ok &= ~(np.asarray(pb)[::s, ::s] > 0.5)
+    spread = log_spread(probs, edges)
+    ok &= (depth > 0) & (depth <= cfg.max_depth) & (spread <= cfg.max_spread)
+    d = np.where(ok, depth, np.float32(0.0)).astype(np.float32)
+    trunc = np.clip(cfg.trunc_sigma * d * spread, cfg.trunc_min * fusion.res, cfg.trunc_max).astype(np.float32)
+    Ks = np.asarray(K, dtype=np.float64).copy()
+    Ks[:2] /= s                                                      # pixel (s·j, s·i) is grid pixel (j, i)
+    fusion.integrate(d, pixel_weights(spread, cfg), trunc, Ks, T_world_cam2)
+    q = int(cfg.snap_step)                                            # the pixels snapped later
+    Kq = Ks.copy()
+    Kq[:2] /= q
+    fusion.pending.append((np.ascontiguousarray(np.where(depth > 0, depth, np.float32(0))[::q, ::q], np.float32),
+                           Kq, np.asarray(T_world_cam2, dtype=np.float64)))
+    return int(ok.sum())
+
+
+def due_surface_points(fusion: SurfaceFusion, flush: bool = False) -> list[np.ndarray]:
+    """World points (N, 3) metres, one array per frame fused ``lag`` frames ago (``flush``: every frame still
+    pending), of its pixels' depths snapped to the fused surface (:meth:`SurfaceFusion.snap_depths`); pixels
+    with no surface within ``snap_window`` give none. Those frames leave the queue."""
+    out = []
+    while fusion.pending and (flush or len(fusion.pending) > fusion.cfg.lag):
+        depth, Ks, T = fusion.pending.pop(0)
+        z = fusion.snap_depths(depth, Ks, T, fusion.cfg.snap_window)
+        v, u = np.nonzero(z > 0)
+        zz = z[v, u].astype(np.float64)
+        cam = np.stack([(u - Ks[0, 2]) / Ks[0, 0] * zz, (v - Ks[1, 2]) / Ks[1, 1] * zz, zz], axis=1)
+        out.append(cam @ T[:3, :3].T + T[:3, 3])
+    return out

@@ -1,0 +1,260 @@
+"""Fused integration (``--integrate fused``): a thin surface fused across views + the distribution's free space."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mono_map.config import OctoMapConfig
+from mono_map.depth.bins import DepthBins
+from mono_map.depth.inference import DepthPrediction
+from mono_map.errors import MonoMapError
+from mono_map.mapping.build import build_map
+from mono_map.mapping.distribution import DistributionConfig
+from mono_map.mapping.fused import FusedConfig, SurfaceFusion, check_fused_config, log_spread, pixel_weights
+from mono_map.mapping.integrate import MapIntegrator
+from mono_map.mapping.octree import key_to_coord, morton_to_keys, pack_keys, tree_leaves
+from mono_map.mapping.points import camera_origin, pixels_to_world
+
+K = np.array([[120.0, 0.0, 64.0], [0.0, 120.0, 24.0], [0.0, 0.0, 1.0]])
+H, W = 48, 128
+BINS = DepthBins()
+
+
+class Seq:
+    """A tiny hand-built sequence: the camera drives forward along z towards a wall at world z = 14 m with a box
+    in front, the ground 1.65 m below; ``depth`` is the exact depth, ``noisy`` adds per-frame noise."""
+
+    name = "hand"
+    times = np.arange(8, dtype=float)
+
+    def __init__(self, n: int = 6):
+        self.n = n
+        self.calib = type("Calib", (), {"K2": K})()
+        self.image_size = (H, W)
+
+    def __len__(self):
+        return self.n
+
+    def T_world_cam2(self, i):
+        T = np.eye(4)
+        T[:3, 3] = [0.1 * i, 0.0, 0.4 * i]
+        return T
+
+    def image(self, i):
+        return np.zeros((H, W, 3), np.uint8)
+
+    def depth(self, i):
+        v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+        cz = 0.4 * i
+        d = np.full((H, W), 14.0 - cz)
+        box = (u > 40) & (u < 70) & (v > 8) & (v < 26)
+        d[box] = 8.0 - cz
+        ray_y = (v - K[1, 2]) / K[1, 1]                      # the ground plane y = +1.65 (camera y points down)
+        with np.errstate(divide="ignore"):
+            g = np.where(ray_y > 0, 1.65 / ray_y, np.inf)
+        d = np.minimum(d, g)
+        return d.astype(np.float32)
+
+
+class LogNormalPredictor:
+    """Per pixel a log-normal over the bins around ``depth_fn(i)`` with log-spread ``sigma`` (H×W or scalar)."""
+
+    bins = BINS
+
+    def __init__(self, depth_fn, sigma):
+        self.depth_fn, self.sigma = depth_fn, sigma
+
+    def predict_frame(self, seq, i, image=None, with_probs=False, probs_step=1):
+        from mono_map.mapping.oracle import lognormal_bin_probs
+
+        d = self.depth_fn(i).astype(np.float32)
+        sig = np.broadcast_to(np.float32(self.sigma) if np.isscalar(self.sigma) else self.sigma(i), d.shape)
+        probs, pb = lognormal_bin_probs(d, sig, BINS)
+        within = 1 - pb
+        probs = np.where(within > 0, probs / np.where(within > 0, within, 1), 0).astype(np.float32)
+        s = probs_step
+        return DepthPrediction(depth=d, entropy=np.log(sig + 1e-3).astype(np.float32),
+                               probs=np.ascontiguousarray(probs[:, ::s, ::s]) if with_probs else None,
+                               p_beyond=pb, probs_step=s)
+
+
+def occupied_keys_of(tree) -> np.ndarray:
+    leaves = tree_leaves(tree)
+    codes, leaf = leaves.expand()
+    return morton_to_keys(codes[leaves.occupied[leaf]])
+
+
+def free_keys_of(tree) -> np.ndarray:
+    leaves = tree_leaves(tree)
+    codes, leaf = leaves.expand()
+    return morton_to_keys(codes[~leaves.occupied[leaf]])
+
+
+def within_one_cell(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per row of ``a``: is a cell of ``b`` within one cell (26-neighbourhood)."""
+    bset = set(pack_keys(b).tolist())
+    out = np.zeros(len(a), bool)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                out |= np.isin(pack_keys(a + [dx, dy, dz]), list(bset))
+    return out
+
+
+DCFG = DistributionConfig(ray_step=1, temperature=1.0)
+
+
+def fused_build(seq, predictor, frames, fcfg=FusedConfig(), dcfg=DCFG, observers=()):
+    return build_map(seq, "mono", frames=frames, integrate="fused", predictor=predictor, distribution=dcfg,
+                     fused=fcfg, observers=observers, show_progress=False)
+
+
+def test_exact_depth_gives_the_depth_gt_surface_within_one_cell():
+    seq = Seq(6)
+    gt = build_map(seq, "depth-gt", frames=range(6), show_progress=False)
+    fused = fused_build(seq, LogNormalPredictor(seq.depth, 1e-4), range(6), FusedConfig(min_weight=1.0))
+    a, b = occupied_keys_of(fused.tree), occupied_keys_of(gt.tree)
+    assert len(a) > 500
+    near = within_one_cell(a, b)
+    assert near.mean() > 0.99                # the fused surface on the true one (a few cells at the box's silhouette)
+    assert within_one_cell(b, a).mean() > 0.9                   # and the true surface is nearly all there
+    assert fused.stats["integrate"] == "fused" and fused.stats["surface_hits"] > 0
+
+
+def test_two_noisy_copies_fuse_to_fewer_occupied_cells_than_either_hard_insertion():
+    seq = Seq(1)
+    rng = np.random.default_rng(0)
+    noisy = [seq.depth(0) * np.exp(rng.normal(0, 0.03, (H, W))).astype(np.float32) for _ in range(2)]
+    T = seq.T_world_cam2(0)
+    hard = []
+    for d in noisy:
+        integ = MapIntegrator(OctoMapConfig())
+        integ.insert(pixels_to_world(d, np.ones(d.shape, bool), K, T), camera_origin(T))
+        hard.append(len(occupied_keys_of(integ.tree)))
+
+    class Twice(Seq):
+        def T_world_cam2(self, i):
+            return T
+
+    fused = fused_build(Twice(2), LogNormalPredictor(lambda i: noisy[i], 0.03), range(2), FusedConfig(min_weight=1.0))
+    n = len(occupied_keys_of(fused.tree))
+    assert 0 < n < min(hard)
+
+
+def test_a_confident_frame_outweighs_an_uncertain_one():
+    """The same view twice: one frame says 10 m confidently, the other 11 m uncertainly: the fused surface a ray
+    snaps to is at 10 m, in either order."""
+    cfg = FusedConfig(min_weight=0.5, trunc_max=2.0, trunc_min=3.0)
+    ones = np.ones((H, W), np.float32)
+    w = pixel_weights(np.array([0.01, 0.3], np.float32), cfg)
+    assert w[0] > 5 * w[1]
+    snapped = []
+    for order in ((0, 1), (1, 0)):
+        f = SurfaceFusion(cfg, 0.2)
+        for k in order:
+            f.integrate((10.1 + k) * ones, w[k] * ones, 1.5 * ones, K, np.eye(4))
+        z = f.snap_depths(10.6 * ones, K, np.eye(4), window=1.0)
+        assert (z > 0).mean() > 0.9
+        assert np.all(np.abs(z[z > 0] - 10.1) < 0.1)
+        snapped.append(z)
+    assert np.allclose(snapped[0], snapped[1], atol=1e-4)
+
+
+def test_surface_cells_are_never_freed_by_rays_that_end_on_them():
+    """One frame of exact depth: every cell a snapped ray ends in is occupied (the free half's own rays, which
+    also end there, never free it) and lies on the true surface (the depth-gt map's end cells)."""
+    seq = Seq(1)
+    gt = build_map(seq, "depth-gt", frames=range(1), show_progress=False)
+    fused = fused_build(seq, LogNormalPredictor(seq.depth, 1e-4), range(1), FusedConfig(min_weight=0.5))
+    occ = occupied_keys_of(fused.tree)
+    assert len(occ) > 300
+    assert fused.stats["surface_hits"] == len(occ)          # one frame: its hit cells, each still occupied
+    assert within_one_cell(occ, occupied_keys_of(gt.tree)).mean() > 0.95     # one view: silhouettes blur
+
+
+def test_point_masses_through_the_free_half_give_the_keep_1_free_cells():
+    seq = Seq(3)
+    keep = build_map(seq, "depth-gt", frames=range(3), show_progress=False)      # keep 1.0 of the exact depth
+    dcfg = DistributionConfig(ray_step=1, temperature=1.0, quantum=0.0, snap_free=False, min_update=0.0)
+
+    class PointMass(LogNormalPredictor):
+        def predict_frame(self, seq_, i, image=None, with_probs=False, probs_step=1):
+            p = super().predict_frame(seq_, i, image, with_probs, probs_step)
+            return p
+
+    # a point mass per pixel: one zero-width bin at the pixel's exact depth (the free half's own point masses)
+    from mono_map.mapping.build import distribution_frame
+
+    integ = MapIntegrator(OctoMapConfig())
+    for i in range(3):
+        d = seq.depth(i)
+        valid = (d >= 1.0) & (d <= 80.0)
+        pred = DepthPrediction(depth=d, entropy=np.zeros_like(d), probs=np.ones((1, H, W), np.float32),
+                               p_beyond=np.zeros_like(d))
+        edges = None
+        # per-pixel edges are not a predictor's output: use the free half directly with point masses
+        from mono_map.mapping.distribution import distribution_update
+        from mono_map.mapping.build import free_updates
+
+        v, u = np.nonzero(valid)
+        dd = d[v, u].astype(np.float64)
+        T = seq.T_world_cam2(i)
+        upd = distribution_update(camera_origin(T), pixels_to_world(d, valid, K, T), dd,
+                                  np.ones((len(dd), 1), np.float32), None, np.stack([dd, dd], 1), 0.2,
+                                  integ.hit, integ.miss, quantum=dcfg.quantum, snap_free=dcfg.snap_free)
+        integ.insert_updates(free_updates(upd))
+        del pred, edges
+    a = set(pack_keys(free_keys_of(integ.tree)).tolist())
+    b = set(pack_keys(free_keys_of(keep.tree)).tolist())
+    occ = set(pack_keys(occupied_keys_of(keep.tree)).tolist())
+    assert len(b) > 1000
+    # the keep-1.0 map's free cells are exactly the free half's free cells that no end point re-occupied
+    assert b == a - occ
+    del PointMass, distribution_frame
+
+
+def test_log_spread_and_weights():
+    edges = BINS.edges
+    p = np.zeros((BINS.num_bins, 3), np.float32)
+    p[20, 0] = 1.0                                  # a point in one bin: spread 0, weight 1
+    p[10:30, 1] = 1 / 20                           # smeared: wide spread, small weight
+    p[[10, 40], 2] = 0.5                           # two modes: wide spread
+    s = log_spread(p, edges)
+    assert s[0] == 0 and s[1] > 0.3 and s[2] > s[1]
+    w = pixel_weights(s, FusedConfig())
+    assert w[0] == 1.0 and w[2] < w[1] < 0.2
+
+
+@pytest.mark.parametrize("field,value,option", [
+    ("spread_ref", 0.0, "--fused-spread-ref"), ("min_weight", -1.0, "--fused-min-weight"),
+    ("trunc_max", float("nan"), "--fused-trunc-max"), ("trunc_behind", 0.5, "--fused-trunc-behind"),
+    ("max_depth", float("inf"), "--fused-max-depth"), ("lag", -1, "--fused-lag"),
+    ("snap_window", 0.0, "--fused-snap-window"),
+    ("trunc_sigma", -2.0, "--fused-trunc-sigma"), ("max_spread", 0.0, "--fused-max-spread")])
+def test_bad_settings_are_one_line_naming_the_option(field, value, option):
+    import dataclasses
+
+    with pytest.raises(MonoMapError, match=option) as exc:
+        check_fused_config(dataclasses.replace(FusedConfig(), **{field: value}))
+    assert "\n" not in str(exc.value)
+
+
+def test_bad_settings_are_refused_by_build_map_before_any_frame():
+    seq = Seq(2)
+    with pytest.raises(MonoMapError, match="--fused-min-weight"):
+        fused_build(seq, LogNormalPredictor(seq.depth, 0.02), range(2), FusedConfig(min_weight=0.0))
+
+
+def test_the_surface_streams_to_observers_as_it_refines():
+    """Observers see the surface appear ``lag`` frames after a frame was fused (the rest at the last frame);
+    the cells they were told became occupied, minus those that stopped, are the final map's occupied cells."""
+    seq = Seq(5)
+    seen = []
+    fused = fused_build(seq, LogNormalPredictor(seq.depth, 0.02), range(5), FusedConfig(min_weight=1.0, lag=2),
+                        observers=[seen.append])
+    assert len(seen) == 5
+    became = [len(u.occupied_keys_changed) for u in seen]
+    assert became[0] == became[1] == 0 and became[2] > 0 and became[4] > 0
+    shown = sum(became) - sum(len(u.freed_keys_changed) for u in seen)
+    assert shown == len(occupied_keys_of(fused.tree)) > 0

@@ -1,0 +1,115 @@
+#!/usr/bin/env python3
+"""Fused maps: a grid of fused-surface settings against keep 0.8 and the distribution map, in ONE pass.
+
+Tuning (on a training town, never on 00):
+
+    PYTHONPATH=. python tools/tune_fused.py --seq 06 --frames 0:200 --data-root DIR \\
+        --spread-ref 0.05,0.1 --min-weight 1,2,4
+
+Every frame is predicted once and every map is a real builder (:mod:`mono_map.mapping.build`) fed from
+that prediction. Each map is scored as ``mono-map eval --table`` scores it: accuracy, coverage, occupied
+P/R/F1 against the LiDAR-FOV map, surface precision against the depth-gt map (synthetic sequences; the
+depth-gt map is also a row), occupied cells, OctoMap memoryUsage. ``--model oracle [--oracle-sigma S]``:
+the noisy ground-truth stand-in (:mod:`mono_map.mapping.oracle`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mono_map.config import OctoMapConfig  # noqa: E402
+from mono_map.data.kitti import open_sequence  # noqa: E402
+from mono_map.eval.map_metrics import compare_leaves, surface_precision  # noqa: E402
+from mono_map.frames import parse_frames  # noqa: E402
+from mono_map.mapping.build import build_map, load_predictor, make_builders, run_builders  # noqa: E402
+from mono_map.mapping.fused import FusedConfig  # noqa: E402
+from mono_map.mapping.octree import tree_leaves  # noqa: E402
+from mono_map.mapping.oracle import NoisyGroundTruthPredictor  # noqa: E402
+
+GRID = ("spread_ref", "min_weight", "trunc_sigma", "trunc_min", "trunc_max", "trunc_behind", "max_depth",
+        "max_spread", "lag", "snap_window", "snap_step")
+
+
+def score(tree, ref, surf) -> dict:
+    leaves = tree_leaves(tree)
+    m = compare_leaves(leaves, ref)
+    out = {k: m[k] for k in ("accuracy", "coverage", "precision", "recall", "f1")}
+    out["memory_mb"] = tree.memoryUsage() / 2**20
+    out["surface_precision"] = surface_precision(leaves, surf)["surface_precision"] if surf is not None else None
+    out["occupied_cells"] = int(leaves.length[leaves.occupied].sum())
+    return out
+
+
+def row(name: str, m: dict) -> str:
+    sp = "–" if m["surface_precision"] is None else f"{100 * m['surface_precision']:.1f}"
+    return (f"| {name} | {100 * m['accuracy']:.1f} | {100 * m['coverage']:.1f} | {100 * m['precision']:.1f} / "
+            f"{100 * m['recall']:.1f} / {100 * m['f1']:.1f} | {sp} | {m['occupied_cells']:,} | {m['memory_mb']:.1f} |")
+
+
+def main(argv=None) -> int:
+    d = FusedConfig()
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seq", default="06")
+    p.add_argument("--frames", default="0:60")
+    p.add_argument("--data-root", default=None)
+    p.add_argument("--model", default="shipped", help="'shipped', 'oracle' or a checkpoint")
+    p.add_argument("--oracle-sigma", type=float, default=None)
+    p.add_argument("--oracle-edge-sigma", type=float, default=None)
+    for name in GRID:
+        p.add_argument("--" + name.replace("_", "-"), default=str(getattr(d, name)), help="comma list")
+    p.add_argument("--no-baselines", action="store_true", help="no keep 0.8 / distribution / depth-gt rows")
+    p.add_argument("--allow-00", action="store_true", help="measure (not tune) on 00: one setting only")
+    args = p.parse_args(argv)
+    values = [[type(getattr(d, n))(float(v)) for v in getattr(args, n).split(",")] for n in GRID]
+    grid = [FusedConfig(**dict(zip(GRID, combo))) for combo in itertools.product(*values)]
+    if args.seq == "00" and (not args.allow_00 or len(grid) > 1):
+        raise SystemExit("tune on a training town, never on 00 (--allow-00 measures one setting)")
+    if args.oracle_sigma is not None and (args.model != "oracle" or not 0 < args.oracle_sigma < 1):
+        raise SystemExit("--oracle-sigma: needs --model oracle and a noise in (0, 1)")
+    seq = open_sequence(args.data_root, args.seq)
+    frames = parse_frames(args.frames).resolve(len(seq))
+    cfg = OctoMapConfig()
+    synthetic = seq.depth(frames[0]) is not None
+    print(f"sequence {args.seq}, frames {frames[0]}-{frames[-1]}, model {args.model}", flush=True)
+    ref = tree_leaves(build_map(seq, "lidar-fov", frames=frames, octomap=cfg, show_progress=False).tree)
+    gt_tree = build_map(seq, "depth-gt", frames=frames, octomap=cfg, show_progress=False).tree if synthetic else None
+    surf = tree_leaves(gt_tree) if synthetic else None
+    if args.model == "oracle":
+        kw = {} if args.oracle_sigma is None else {"sigma": args.oracle_sigma}
+        if args.oracle_edge_sigma is not None:
+            kw["edge_sigma"] = args.oracle_edge_sigma
+        predictor = NoisyGroundTruthPredictor(**kw)
+    else:
+        predictor = load_predictor(None if args.model == "shipped" else args.model)
+    names, maps = [], []
+    if not args.no_baselines:
+        names += ["mono keep 0.8", "mono, distribution"]
+        maps += [dict(keep=0.8), dict(integrate="distribution")]
+    for g in grid:
+        names.append("fused " + " ".join(f"{n} {getattr(g, n):g}" for n in GRID if getattr(g, n) != getattr(d, n)))
+        maps.append(dict(integrate="fused", fused=g))
+    builders = make_builders(seq, [dict(kw, source="mono", predictor=predictor, stats_every=10**9) for kw in maps],
+                             len(frames))
+    run_builders(seq, builders, frames)
+    lines = ["| map | acc. | cov. | occ. P / R / F1 | surface prec. | occupied cells | memory (MB) |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    if gt_tree is not None and not args.no_baselines:
+        lines.append(row("depth-gt", score(gt_tree, ref, surf)))
+        print(lines[-1], flush=True)
+    for name in names:
+        b = builders.pop(0)
+        fps = len(frames) / sum(f["frame_s"] for f in b.per_frame)
+        lines.append(row(name, score(b.result(frames).tree, ref, surf)) + f" {fps:.1f} fr/s map work |")
+        print(lines[-1], flush=True)
+        del b
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
