@@ -20,7 +20,6 @@ import itertools
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
