@@ -130,7 +130,7 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
     targets = [Path(p) for p in paths]
     check_output_targets(targets)
     for d in sorted({t.parent for t in targets}):
-        clean_stale_temps(d)  # what killed runs left here, wherever they wrote
+        sweep_once(d)  # what killed runs left here, wherever they wrote
     temps: list[Path] = []
     created: list[Path] = []  # folders made here, removed again (if empty) when nothing is published
     published = False
@@ -147,6 +147,18 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
             tmp.unlink(missing_ok=True)
         if not published:
             _remove_empty_dirs(created)
+
+
+_SWEPT: set[str] = set()
+
+
+def sweep_once(folder: Path) -> None:
+    """:func:`clean_stale_temps` of ``folder`` the first time this process writes there (a folder of
+    thousands of frames is listed once, not once per file)."""
+    key = str(Path(folder).resolve())
+    if key not in _SWEPT:
+        _SWEPT.add(key)
+        clean_stale_temps(folder)
 
 
 def publish_renames(pairs: list[tuple[Path, Path]]) -> None:
@@ -206,7 +218,7 @@ def staged_dir(out: str | os.PathLike) -> Iterator[Path]:
     if out.exists() and not out.is_dir():
         raise MonoMapError(f"{out} is a file, not a folder")
     created = _make_dirs(out)
-    clean_stale_temps(out)
+    sweep_once(out)
     register_temp_dir(out)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name[:64]}.{os.getpid()}.", suffix=".tmpstage", dir=out))
     published = False
