@@ -147,7 +147,7 @@ def test_a_confident_frame_outweighs_an_uncertain_one():
     snaps to is at 10 m, in either order."""
     cfg = FusedConfig(min_weight=0.5, trunc_max=2.0, trunc_min=3.0)
     ones = np.ones((H, W), np.float32)
-    w = pixel_weights(np.array([0.01, 0.3], np.float32), cfg)
+    w = pixel_weights(np.array([0.01, 0.6], np.float32), cfg)
     assert w[0] > 5 * w[1]
     snapped = []
     for order in ((0, 1), (1, 0)):

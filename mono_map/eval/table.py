@@ -194,7 +194,8 @@ def run_table(job: TableJob, pictures=None) -> Table:
             row["ece"] = cal["ece"]
         rows.append(row)
 
-    md = table_markdown(rows, job.seq, desc, cfg, job.model, reference, dcfg if extended else None)
+    md = table_markdown(rows, job.seq, desc, cfg, job.model, reference, dcfg if extended else None,
+                        job.fused if extended else None)
     stem = (f"table_{tag}_res{cfg.resolution:g}" + (f"_model-{Path(job.model).stem}" if job.model else "")
             + ("_ref-lidar" if reference == "lidar" else ""))
     table = Table(rows=rows, markdown=md, out_dir=out_dir, stem=stem, reference=reference, reliability=reliability,
@@ -206,6 +207,7 @@ def run_table(job: TableJob, pictures=None) -> Table:
                                                    "reference": reference, "resolution": cfg.resolution,
                                                    "model": job.model, "model_digest": digest, "rows": rows,
                                                    "distribution": dcfg.__dict__ if extended else None,
+                                                   "fused": job.fused.__dict__ if extended else None,
                                                    "reliability": reliability, "data": fov.key()["data"]})
         table.pictures = list(pictures(table, stage)) if pictures is not None else []
     return table
@@ -216,9 +218,13 @@ def _pct(v) -> str:
 
 
 def table_markdown(rows: list[dict], seq: str, desc: str, cfg, model, reference: str = "lidar-fov",
-                   dcfg=None) -> str:
+                   dcfg=None, fcfg=None) -> str:
     dist = "" if dcfg is None else (f" Distribution map: eps {dcfg.eps:g}, min update {dcfg.min_update:g}, "
                                     f"ray step {dcfg.ray_step}, temperature {dcfg.temperature:g}.")
+    if fcfg is not None:
+        dist += (f" Fused map: the distribution map's free space + surface hits snapped to the fused TSDF "
+                 f"(spread ref {fcfg.spread_ref:g}, min weight {fcfg.min_weight:g}, lag {fcfg.lag}, snap window "
+                 f"{fcfg.snap_window:g} m).")
     lines = [f"Sequence {seq}, {desc}, {cfg.resolution:g} m cells, model {model or 'shipped binary'}; "
              f"reference = {'LiDAR-FOV' if reference == 'lidar-fov' else 'whole LiDAR (360°)'} map. Accuracy: share of the reference's known cells (volume-weighted, "
              "finest cells) whose free/occupied state the map reproduces, unknown = wrong. Memory: OctoMap "

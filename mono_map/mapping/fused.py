@@ -49,8 +49,8 @@ class FusedConfig:
     snapped (each still hits a cell of its own at 0.2 m cells beyond a few metres)."""
 
     # chosen on training town 06 frames 0-199 (docs/fused.md), never on 00
-    spread_ref: float = 0.1
-    min_weight: float = 2.0
+    spread_ref: float = 0.15
+    min_weight: float = 1.0
     trunc_sigma: float = 1.0
     trunc_min: float = 3.0
     trunc_max: float = 1.0
