@@ -10,7 +10,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mono_map.errors import MonoMapError  # noqa: E402
 from mono_map.mapping.octree import load_tree, tree_leaves  # noqa: E402
