@@ -479,6 +479,8 @@ CASES = [
     Case("env-trainset-is-a-file", B, "$MONO_MAP_TRAINSET", env={"MONO_MAP_TRAINSET": "{tmp}/m.bt"}),
     # ---- data that would give a silently wrong map
     Case("pose-reflection", B, "tiny.txt:3: pose rotation is a reflection", reflect_pose),
+    Case("pose-beyond-the-maps-reach", B, "tiny.txt:2: frame 1's pose is", lambda c: shift_pose(c, 2, 1e6)),
+    Case("table-pose-beyond-the-maps-reach", TABLE, "tiny.txt:2: frame 1's pose is", lambda c: shift_pose(c, 2, 1e6)),
     Case("eval-sidecar-missing", ["eval", "--map", "{tmp}/m.bt", "--reference", "lidar-fov", "--seq", "tiny",
                                   "--data-root", "{data}", "--out", "{out}"], "m.json is missing",
          lambda c: c.good_bt.with_suffix(".json").unlink()),
