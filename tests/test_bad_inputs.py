@@ -243,12 +243,15 @@ def checkpoint_with(config_keys: dict | None = None, **top) -> Callable[[Ctx], N
 def run_config(text: str, name: str = "run.toml") -> Callable[[Ctx], None]:
     """Setup: a training config ``{tmp}/<name>`` whose work folder is under {tmp} (``{work}`` in ``text``)."""
     def setup(c: Ctx) -> None:
-        replace(c.tmp / name, text.replace("{work}", str(c.tmp / "work")))
+        replace(c.tmp / name, text.replace("{work}", str(c.tmp / "work")).replace("{tmp}", str(c.tmp)))
     return setup
 
 
-GOOD_RUN = 'name = "r"\n[model]\narch = "small"\n[train]\nwork_dir = "{work}"\n'
-TRAIN = ["train", "--config", "{tmp}/run.toml", "--data-root", "{data}"]
+# a config that trains on 2 frames of tiny for one step: a check that failed to refuse costs seconds, not a render
+GOOD_RUN = 'name = "r"\n[model]\narch = "small"\n[data]\nsequences = ["tiny"]\nframes = 2\n[train]\nwork_dir = "{work}"\n'
+DATA_RUN = 'name = "r"\n[model]\narch = "small"\n[train]\nwork_dir = "{work}"\n[data]\nsequences = ["tiny"]\nframes = 2\n'
+TRAIN = ["train", "--config", "{tmp}/run.toml", "--data-root", "{data}", "--steps", "1"]
+TINY_DATA = '[data]\nsequences = ["tiny"]\nframes = 2\n'
 CKPT = M + ["--model", "{tmp}/bad.pt"]
 
 
@@ -427,7 +430,7 @@ CASES = [
     Case("train-steps-abc", TRAIN, "run.toml [train]: steps", run_config(GOOD_RUN + 'steps = "abc"\n')),
     Case("train-batch-float", TRAIN, "run.toml [train]: batch_size", run_config(GOOD_RUN + "batch_size = 1.5\n")),
     Case("train-batch-zero", TRAIN, "run.toml [train]: batch_size", run_config(GOOD_RUN + "batch_size = 0\n")),
-    Case("train-model-int", TRAIN, "run.toml: model", run_config('name = "r"\nmodel = 3\n')),
+    Case("train-model-int", TRAIN, "run.toml: model", run_config('name = "r"\nmodel = 3\n[data]\nsequences = ["tiny"]\nframes = 2\n')),
     Case("train-lr-negative", TRAIN, "run.toml [train]: lr", run_config(GOOD_RUN + "lr = -1e-4\n")),
     Case("train-lr-nan", TRAIN, "run.toml [train]: lr", run_config(GOOD_RUN + "lr = nan\n")),
     Case("train-crop-one-value", TRAIN, "run.toml [train]: crop", run_config(GOOD_RUN + "crop = [128]\n")),
@@ -437,19 +440,26 @@ CASES = [
     Case("train-unknown-key", TRAIN, "run.toml [train]: unknown key stepz", run_config(GOOD_RUN + "stepz = 5\n")),
     Case("train-unknown-section", TRAIN, "run.toml: unknown key optimiser", run_config(GOOD_RUN + "[optimiser]\nx = 1\n")),
     Case("train-data-frames-negative", TRAIN, "run.toml [data]: frames",
-         run_config(GOOD_RUN + "[data]\nframes = -3\n")),
+         run_config(DATA_RUN.replace("frames = 2", "frames = -3"))),
     Case("train-data-sequences-numbers", TRAIN, "run.toml [data]: sequences[0]",
-         run_config(GOOD_RUN + "[data]\nsequences = [5, 6]\n")),
-    Case("train-data-target", TRAIN, "run.toml [data]: target", run_config(GOOD_RUN + '[data]\ntarget = "radar"\n')),
+         run_config(DATA_RUN.replace('["tiny"]', "[5, 6]"))),
+    Case("train-data-target", TRAIN, "run.toml [data]: target", run_config(DATA_RUN + 'target = "radar"\n')),
     Case("train-model-arch-unknown", TRAIN, "run.toml [model]: arch",
-         run_config('name = "r"\n[model]\narch = "resnet-9000"\n[train]\nwork_dir = "{work}"\n')),
+         run_config('name = "r"\n[model]\narch = "resnet-9000"\n[train]\nwork_dir = "{work}"\n' + TINY_DATA)),
     Case("train-model-num-bins-string", TRAIN, "run.toml [model]: num_bins",
-         run_config('name = "r"\n[model]\nnum_bins = "64"\n[train]\nwork_dir = "{work}"\n')),
+         run_config('name = "r"\n[model]\nnum_bins = "64"\n[train]\nwork_dir = "{work}"\n' + TINY_DATA)),
     Case("train-name-escapes", TRAIN, "run.toml: name",
-         run_config('name = "../up"\n[train]\nwork_dir = "{work}"\n')),
+         run_config('name = "../up"\n[train]\nwork_dir = "{work}"\n' + TINY_DATA)),
+    Case("train-data-root-is-a-file", ["train", "--config", "{tmp}/run.toml"], "run.toml [data]: root",
+         run_config(DATA_RUN + 'root = "{tmp}/m.bt"\n')),
+    Case("train-output-is-a-folder", TRAIN, "run.toml [train]: output",
+         run_config(GOOD_RUN + 'output = "{tmp}/out"\n')),
+    Case("train-work-dir-is-a-file", TRAIN, "run.toml [train]: work_dir",
+         run_config('name = "r"\n[train]\nwork_dir = "{tmp}/m.bt"\n' + TINY_DATA)),
+    Case("train-output-option-is-a-folder", TRAIN + ["--output", "{out}"], "--output", run_config(GOOD_RUN)),
     Case("train-toml-syntax", TRAIN, "run.toml: cannot parse", run_config(GOOD_RUN + "steps = \n")),
-    Case("train-json-steps-null", ["train", "--config", "{tmp}/run.json"], "run.json [train]: steps",
-         run_config('{"name": "r", "train": {"steps": null, "work_dir": "{work}"}}', "run.json")),
+    Case("train-json-steps-null", ["train", "--config", "{tmp}/run.json", "--data-root", "{data}"], "run.json [train]: steps",
+         run_config('{"name": "r", "train": {"steps": null, "work_dir": "{work}"}, "data": {"sequences": ["tiny"], "frames": 2}}', "run.json")),
     Case("train-json-top-list", ["train", "--config", "{tmp}/run.json"], "run.json",
          run_config("[1, 2]", "run.json")),
     # ---- environment variables: checked once before any command, naming the variable
@@ -469,6 +479,14 @@ CASES = [
     Case("env-trainset-is-a-file", B, "$MONO_MAP_TRAINSET", env={"MONO_MAP_TRAINSET": "{tmp}/m.bt"}),
     # ---- data that would give a silently wrong map
     Case("pose-reflection", B, "tiny.txt:3: pose rotation is a reflection", reflect_pose),
+    Case("pose-beyond-the-maps-reach", B, "tiny.txt:2: frame 1's pose is", lambda c: shift_pose(c, 2, 1e6)),
+    Case("table-pose-beyond-the-maps-reach", TABLE, "tiny.txt:2: frame 1's pose is", lambda c: shift_pose(c, 2, 1e6)),
+    Case("scan-point-far-away", B, "velodyne/000000.bin: 10 points lie more than",
+         lambda c: replace(seq_file(c, "velodyne/000000.bin"), np.array([[1e7, 0, 0, 1]] * 10, np.float32).tobytes())),
+    Case("image-name-is-a-folder", B, "image_2/000001.png: a folder",
+         lambda c: (seq_file(c, "image_2/000001.png").unlink(), seq_file(c, "image_2/000001.png").mkdir())),
+    Case("times-going-back", B, "times.txt:3: timestamp",
+         lambda c: replace(seq_file(c, "times.txt"), "0.0\n0.3\n0.1\n0.9\n1.2\n1.5\n")),
     Case("eval-sidecar-missing", ["eval", "--map", "{tmp}/m.bt", "--reference", "lidar-fov", "--seq", "tiny",
                                   "--data-root", "{data}", "--out", "{out}"], "m.json is missing",
          lambda c: c.good_bt.with_suffix(".json").unlink()),

@@ -133,6 +133,10 @@ def read_times_file(path: str | os.PathLike) -> np.ndarray:
         raise MonoMapError(f"{path}: non-numeric timestamp") from None
     if not np.all(np.isfinite(times)):
         raise MonoMapError(f"{path}: timestamp is NaN or infinite")
+    back = np.flatnonzero(np.diff(times) < 0)
+    if len(back):
+        raise MonoMapError(f"{path}:{int(back[0]) + 2}: timestamp {times[back[0] + 1]:g} s is earlier than the one "
+                           f"before ({times[back[0]]:g} s); frames must be in time order")
     return times
 
 
@@ -150,7 +154,14 @@ def read_velodyne_bin(path: str | os.PathLike) -> np.ndarray:
     scan = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
     if not np.all(np.isfinite(scan)):
         raise MonoMapError(f"{path}: velodyne scan holds NaN or infinite values")
+    far = np.abs(scan[:, :3]).max(axis=1) > MAX_LIDAR_RANGE
+    if far.any():
+        raise MonoMapError(f"{path}: {int(far.sum())} points lie more than {MAX_LIDAR_RANGE:g} m from the sensor "
+                           f"(first: point {int(far.argmax())}); a corrupt scan?")
     return scan
+
+
+MAX_LIDAR_RANGE = 2000.0  # metres: far beyond any automotive LiDAR (the HDL-64E reaches about 120 m)
 
 
 def read_image_rgb(path: str | os.PathLike) -> np.ndarray:
@@ -476,4 +487,8 @@ def _listing(folder: Path, suffix: str) -> list[Path]:
     frames); [] if the folder is missing."""
     if not folder.is_dir():
         return []
-    return sorted(p for p in folder.iterdir() if p.suffix == suffix and not p.name.startswith(".") and p.is_file())
+    found = sorted(p for p in folder.iterdir() if p.suffix == suffix and not p.name.startswith("."))
+    for p in found:
+        if not p.is_file():
+            raise MonoMapError(f"{p}: a folder where a {suffix} frame file belongs")
+    return found

@@ -108,6 +108,10 @@ def run_train(args) -> int:
     from mono_map.depth.inference import default_precision
     from mono_map.depth.train import dist_env, init_distributed, load_run_config, override, train
 
+    if args.data_root is not None:
+        from mono_map.data.prepare import check_data_root
+
+        check_data_root(args.data_root)
     cfg = override(load_run_config(args.config), steps=args.steps, output=args.output, data_root=args.data_root,
                    precision=args.precision, threads=args.threads)
     if cfg.train.bf16 and default_precision() == "fp32":

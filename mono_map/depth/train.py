@@ -120,10 +120,27 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
     train = check_fields(TrainConfig, top.get("train", {}), f"{path} [train]")
     cfg = RunConfig(name=top.get("name", path.stem), model=dict(top.get("model", {})),
                     data=DataConfig(**data), train=TrainConfig(**train), source=str(path))
+    root = Path(cfg.data.root).expanduser() if cfg.data.root else None
+    if root is not None and root.exists() and not root.is_dir():
+        raise MonoMapError(f"{path} [data]: root: {root} is a file, not a folder")
+    check_train_outputs(cfg.train, f"{path} [train]: output", f"{path} [train]: work_dir")
     if "/" in cfg.name or cfg.name.startswith("."):
         raise MonoMapError(f"{path}: name: {cfg.name!r} must be a plain folder name (no '/', not starting with '.')")
     validate_run_config(cfg)
     return cfg
+
+
+def check_train_outputs(t: TrainConfig, output_name: str, work_name: str) -> None:
+    """Before training: the final checkpoint's path is not a folder, the work folder not a file (named as
+    ``output_name`` / ``work_name``), so hours of training never end in a write that cannot succeed."""
+    out = Path(t.output).expanduser() if t.output else None
+    if out is not None and (out.is_dir() or str(t.output).endswith("/")):
+        raise MonoMapError(f"{output_name}: {out} is a folder; give the checkpoint file's path (.pt)")
+    if out is not None and out.parent.exists() and not out.parent.is_dir():
+        raise MonoMapError(f"{output_name}: {out.parent} is a file, not a folder")
+    work = Path(t.work_dir).expanduser()
+    if work.exists() and not work.is_dir():
+        raise MonoMapError(f"{work_name}: {work} is a file, not a folder")
 
 
 def validate_run_config(cfg: RunConfig) -> None:
@@ -414,6 +431,8 @@ def override(cfg: RunConfig, steps: int | None = None, output: str | None = None
     if precision not in (None, "fp32", "bf16"):
         raise MonoMapError(f"--precision: must be fp32 or bf16, got {precision!r}")
     t = cfg.train
+    if output is not None:
+        check_train_outputs(replace(t, output=output), "--output", "work_dir")
     t = replace(t, steps=t.steps if steps is None else steps, output=t.output if output is None else output,
                 bf16=t.bf16 if precision is None else precision == "bf16",
                 threads=t.threads if threads is None else threads)

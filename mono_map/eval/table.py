@@ -22,7 +22,7 @@ from mono_map.frames import FrameSelection
 from mono_map.io import prepare_output_dir
 from mono_map.mapping.distribution import DistributionConfig
 from mono_map.mapping.fused import FusedConfig
-from mono_map.mapping.jobs import MapJob
+from mono_map.mapping.jobs import MapJob, check_reach
 from mono_map.paths import sequence_output_dir
 
 CALIBRATED = ("mono (keep 1.0)", "mono keep 0.8", "mono, distribution")   # rows with a .ot and an ECE
@@ -160,6 +160,8 @@ def run_table(job: TableJob, pictures=None) -> Table:
     jobs = [(mj, label in calibrated) for label, _, _, mj in entries]
     if ref is not fov:
         jobs.insert(1, (ref, False))
+    for mj, _ in jobs:
+        check_reach(seq, mj)  # a pose beyond the map's reach is named before any map is built
     build_missing(missing_maps(jobs, out_dir), seq, out_dir, predictor)
     ref_bt = ref.path(out_dir)
     gt_bt = None if gt is None else gt.path(out_dir)

@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 
 from mono_map.io import prepare_output_dir
-from mono_map.mapping.jobs import (RRD_MIN_FREE, MapJob, build_and_write, check_memory, checkpoint_path,
-                                   model_digest, read_map_sidecar, reusable)
+from mono_map.mapping.jobs import (RRD_MIN_FREE, MapJob, build_and_write, check_memory, check_reach,
+                                   checkpoint_path, model_digest, read_map_sidecar, reusable)
 from mono_map.mapping.select import DEFAULT_KEEP
 from mono_map.paths import sequence_output_dir
 
@@ -244,6 +244,7 @@ def run_build(args) -> int:
                            f"{frames[0]} (a synthetic sequence has it)")
     job = MapJob.of(seq, args.source, frames, keep=args.keep, integrate=args.integrate, distribution=dcfg,
                     octomap=cfg, stride=args.stride, model=args.model, digest=digest, fused=fcfg)
+    check_reach(seq, job)
     check_memory(seq, job)
     how = ""
     if args.source == "mono":
@@ -280,6 +281,7 @@ def reference_path(ref: str, seq, cfg, frames, out_dir: Path) -> Path:
         bt = job.path(out_dir)
         ok, why = reusable(bt, job)
         if not ok:
+            check_reach(seq, job)
             print(f"{'rebuilding' if bt.exists() else 'building'} the {ref} reference map {bt}: {why}", flush=True)
             build_and_write(job, seq, out_dir)
         return bt

@@ -308,6 +308,26 @@ def estimate_frame_bytes(seq, i: int, source: str, cfg, stride: int, keep: float
     return float(np.sum(lengths / cfg.resolution + 1)) * BYTES_PER_VISIT
 
 
+def check_reach(seq, job: MapJob) -> None:
+    """Refuse, before building, a job whose camera leaves the region an OctoMap of its resolution can
+    address (16-bit keys: ±32767 cells around the world origin), naming the pose file and line."""
+    import numpy as np
+
+    from mono_map.errors import MonoMapError
+
+    poses = getattr(seq, "poses_cam0", None)
+    if poses is None:
+        return
+    frames = np.asarray(job.frames, dtype=np.int64)
+    reach = 32767 * job.octomap.resolution
+    far = np.abs(poses[frames, :3, 3]).max(axis=1)
+    if far.max() >= reach:
+        k = int(frames[int(far.argmax())])
+        raise MonoMapError(f"{seq.pose_path}:{k + 1}: frame {k}'s pose is {far.max():.0f} m from the first camera, "
+                           f"beyond what a {job.octomap.resolution:g} m OctoMap can address (±{reach:.0f} m); "
+                           "is the pose right? (a coarser --res reaches further)")
+
+
 def check_memory(seq, job: MapJob) -> None:
     """Refuse, before building, a job whose first frame alone would not fit in memory (a distribution
     build: one ray every ``ray_step``-th pixel of every valid one; depth-gt: every pixel)."""
