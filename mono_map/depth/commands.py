@@ -82,6 +82,8 @@ def register(subparsers) -> None:
                    help=f"sources are searched up to this many frames before and after a target (default {d.max_offset})")
     p.add_argument("--loss-scale", type=int, default=d.loss_scale, choices=(1, 2, 4),
                    help=f"photometric loss at 1/N of the network input size (default {d.loss_scale})")
+    p.add_argument("--trim", type=float, default=d.trim,
+                   help=f"leave out this fraction of each batch's highest-error pixels (default {d.trim:g})")
     p.add_argument("--replay", type=float, default=d.replay,
                    help="weight of supervised replay on --replay-seq, relative to the photometric loss at the start "
                         f"(default {d.replay:g} = off)")
@@ -285,6 +287,7 @@ def run_adapt(args) -> int:
         raise MonoMapError(f"--threads: must be >= 1, got {args.threads}")
     cfg = AdaptConfig(steps=args.steps, lr=args.lr, batch_size=args.batch_size, min_baseline=args.min_baseline,
                       max_baseline=args.max_baseline, max_offset=args.max_offset, loss_scale=args.loss_scale,
+                      trim=args.trim,
                       replay=args.replay, replay_seq=args.replay_seq,
                       eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision())
     cfg.validate()
