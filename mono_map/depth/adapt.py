@@ -48,6 +48,7 @@ class AdaptConfig:
     replay_seq: str = ""             # synthetic training sequence of the replay ("" = none)
     replay_frames: int = 40          # replay frames (evenly spread over the replay sequence)
     eval_every: int = 25             # steps between held-out evaluations (and saved states)
+    trim: float = 0.0                # leave out this fraction of the highest-error pixels of a batch
     loss_scale: int = 2              # photometric loss at 1/loss_scale of the network input (1 or 2)
     seed: int = 0
     precision: str = "fp32"          # "bf16": bfloat16 autocast of the network's forward pass
@@ -63,6 +64,7 @@ class AdaptConfig:
                   (self.replay >= 0, "--replay", f"must be >= 0, got {self.replay}"),
                   (not self.replay or bool(self.replay_seq), "--replay", "needs --replay-seq (a synthetic training sequence)"),
                   (self.replay_seq != "00", "--replay-seq", "00 is the held-out evaluation sequence, never trained on"),
+                  (0 <= self.trim < 1, "--trim", f"must be in [0, 1), got {self.trim}"),
                   (self.loss_scale in (1, 2, 4), "loss_scale", f"must be 1, 2 or 4, got {self.loss_scale}"),
                   (self.eval_every >= 1, "eval_every", f"must be >= 1, got {self.eval_every}"),
                   (self.precision in ("fp32", "bf16"), "--precision", f"must be fp32 or bf16, got {self.precision}")]

@@ -79,7 +79,7 @@ class Adapter:
         low = self.forward(x)
         depth, beyond_logit = self.depth_and_beyond(low, tgt.shape[-2:])
         K = self.K.expand(len(targets), 3, 3)
-        photo, used = photometric.reprojection_loss(tgt, sources, depth, K, poses, mask=mask)
+        photo, used = photometric.reprojection_loss(tgt, sources, depth, K, poses, mask=mask, trim=self.cfg.trim)
         smooth = photometric.smoothness_loss(depth, tgt)
         return photo, smooth, beyond_logit, {"used": float(used.float().mean())}
 

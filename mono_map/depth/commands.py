@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from mono_map.errors import MonoMapError
-from mono_map.frames import FrameSelection, parse_frames
+from mono_map.frames import FrameSelection, first_frames, parse_frames
 
 
 def register(subparsers) -> None:
@@ -73,7 +73,7 @@ def register(subparsers) -> None:
                     "Resumes from ~/.cache/mono-map/adapt/.")
     p.add_argument("--seq", required=True, help="sequence name under the data root (e.g. real01)")
     p.add_argument("--data-root", default=None)
-    p.add_argument("--frames", default=None, help="frames to adapt on: N, A:B[:S], I,J,... or 'all' (default all)")
+    p.add_argument("--frames", default=None, help="frames to adapt on: N, A:B[:S], I,J,... or 'all' (default: the first 500, as build)")
     p.add_argument("--model", default=None, help="base checkpoint path or shipped name (default binary)")
     p.add_argument("--out", default="outputs/adapt", help="folder of the adapted checkpoint (default outputs/adapt)")
     p.add_argument("--steps", type=int, default=d.steps, help=f"optimisation steps (default {d.steps})")
@@ -86,6 +86,8 @@ def register(subparsers) -> None:
                    help=f"sources are searched up to this many frames before and after a target (default {d.max_offset})")
     p.add_argument("--loss-scale", type=int, default=d.loss_scale, choices=(1, 2, 4),
                    help=f"photometric loss at 1/N of the network input size (default {d.loss_scale})")
+    p.add_argument("--trim", type=float, default=d.trim,
+                   help=f"leave out this fraction of each batch's highest-error pixels (default {d.trim:g})")
     p.add_argument("--replay", type=float, default=d.replay,
                    help="weight of supervised replay on --replay-seq, relative to the photometric loss at the start "
                         f"(default {d.replay:g} = off)")
@@ -101,6 +103,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_adapt)
 
 
+ADAPT_FRAMES = 500  # adapt's default: the first 500 frames, as build and eval (a synthetic recipe is never rendered whole)
 EVAL_FRAMES = FrameSelection("0:500:10", stop=500, step=10, up_to=True)  # eval-depth's default
 
 
@@ -351,10 +354,11 @@ def run_adapt(args) -> int:
         raise MonoMapError(f"--threads: must be >= 1, got {args.threads}")
     cfg = AdaptConfig(steps=args.steps, lr=args.lr, batch_size=args.batch_size, min_baseline=args.min_baseline,
                       max_baseline=args.max_baseline, max_offset=args.max_offset, loss_scale=args.loss_scale,
+                      trim=args.trim,
                       replay=args.replay, replay_seq=args.replay_seq,
                       eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision())
     cfg.validate()
-    selection = parse_frames(args.frames) if args.frames is not None else None
+    selection = parse_frames(args.frames, default=first_frames(ADAPT_FRAMES))
     torch.set_num_threads(args.threads)
     res = adapt(args.model, args.data_root, args.seq, selection, cfg, out_dir=args.out,
                 resume=not args.no_resume, replay_root=args.replay_root,

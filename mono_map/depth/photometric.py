@@ -73,12 +73,14 @@ def photometric_error(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def reprojection_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: torch.Tensor, K: torch.Tensor,
-                      poses: list[torch.Tensor], mask: torch.Tensor | None = None, automask: bool = True
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
+                      poses: list[torch.Tensor], mask: torch.Tensor | None = None, automask: bool = True,
+                      trim: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """monodepth2's loss: per pixel the minimum over the sources of the warped error; with ``automask``,
     pixels whose unwarped sources already match at least as well (minus :data:`AUTOMASK_MARGIN`: a static
     camera, things moving with it) are left out. ``mask`` (B,1,H,W) bool restricts the pixels further
-    (e.g. no sky, no padding). Returns (mean over the counted pixels, counted-pixel mask)."""
+    (e.g. no sky, no padding). ``trim`` > 0 also leaves out that fraction of the counted pixels with the
+    highest error (a robust mean against what no static scene explains: traffic, reflections).
+    Returns (mean over the counted pixels, counted-pixel mask)."""
     errs, valids = [], []
     for src, T in zip(sources, poses):
         warped, valid = warp(src, depth, K, T)
@@ -93,6 +95,10 @@ def reprojection_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: 
         used = used & (reproj < ident - AUTOMASK_MARGIN)
     if mask is not None:
         used = used & mask
+    if trim > 0 and used.any():
+        with torch.no_grad():
+            worst = torch.quantile(reproj[used].float()[:1_000_000], 1.0 - trim)
+        used = used & (reproj <= worst)
     n = used.sum()
     loss = (reproj * used).sum() / n.clamp_min(1)
     return loss, used
