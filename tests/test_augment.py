@@ -81,6 +81,8 @@ def test_every_family_keeps_shape_dtype_and_range_and_is_seeded():
         assert 0.0 <= a.min() and a.max() <= 1.0, fam
         np.testing.assert_array_equal(a, b, err_msg=fam)
         assert not np.array_equal(a, img), fam                # a family that is on changes the image
+    half = A.CameraAugment().scaled(0.5)
+    assert all(getattr(half, f"p_{f}") == 0.5 * getattr(A.CameraAugment(), f"p_{f}") for f in A.FAMILIES)
     off = A.CameraAugment().only(("blur",))
     assert off.p_blur > 0 and all(getattr(off, f"p_{f}") == 0 for f in A.FAMILIES if f != "blur")
     wild = np.clip(np.random.default_rng(4).normal(0.5, 0.6, (32, 48, 3)), 0, 1).astype(np.float32)
@@ -182,7 +184,9 @@ def test_augmentation_config_is_checked_with_one_line(tmp_path):
                      (dict(photometric="camera", camera_families=("bloom",)), "train.camera_families"),
                      (dict(camera_families=("blur",)), "train.camera_families"),
                      (dict(scale=(0.8, 1.2)), "train.scale"), (dict(scale=(1.3, 1.1)), "train.scale"),
-                     (dict(scale=(1.0, math.nan)), "train.scale"), (dict(scale=(1.0,)), "train.scale")):
+                     (dict(scale=(1.0, math.nan)), "train.scale"), (dict(scale=(1.0,)), "train.scale"),
+                     (dict(photometric="camera", camera_p_scale=0.0), "train.camera_p_scale"),
+                     (dict(photometric="camera", camera_p_scale=1.5), "train.camera_p_scale")):
         with pytest.raises(MonoMapError, match=word):
             validate_augmentation(TrainConfig(**kw), "cfg")
     bad = tmp_path / "bad.toml"

@@ -53,6 +53,12 @@ class CameraAugment:
 
         return replace(self, **{f"p_{f}": 0.0 for f in FAMILIES if f not in families})
 
+    def scaled(self, factor: float) -> "CameraAugment":
+        """Every family's probability times ``factor`` (0-1; 1 = unchanged, 0.5 = a milder policy)."""
+        from dataclasses import replace
+
+        return replace(self, **{f"p_{f}": getattr(self, f"p_{f}") * factor for f in FAMILIES})
+
 
 # ------------------------------------------------------------------ the families (pure, parameters explicit)
 def vignetting(img: np.ndarray, strength: float, centre: tuple = (0.5, 0.5)) -> np.ndarray:

@@ -69,6 +69,7 @@ class TrainConfig:
     photometric: str = field(default="godard", metadata=bounded(choices=("godard", "camera")))  # colour augmentation (depth/augment.py): "godard" (the paper's,
                                                      # half the crops) or "camera" (nine camera families)
     camera_families: tuple = ()                      # "camera": only these families (empty = all nine)
+    camera_p_scale: float = 1.0                      # "camera": every family's probability times this (0-1]
     scale: tuple = (1.0, 1.0)                        # enlarge each frame by s ~ U(lo, hi) >= 1 before the crop,
                                                      # depth targets / s (focal length kept; depth/augment.py)
 
@@ -171,6 +172,9 @@ def validate_augmentation(t: TrainConfig, src: str = "config") -> None:
         raise MonoMapError(f"{src}: train.camera_families: unknown {bad} (known: {', '.join(FAMILIES)})")
     if t.camera_families and t.photometric != "camera":
         raise MonoMapError(f"{src}: train.camera_families needs train.photometric = \"camera\"")
+    p = t.camera_p_scale
+    if not isinstance(p, (int, float)) or not 0.0 < p <= 1.0:
+        raise MonoMapError(f"{src}: train.camera_p_scale must be in (0, 1], got {p!r}")
     sc = t.scale
     if (len(sc) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in sc)
             or not 1.0 <= sc[0] <= sc[1] <= 2.0):
@@ -189,7 +193,8 @@ class Augmentation:
 def augmentation(t: TrainConfig) -> Augmentation:
     from mono_map.depth.augment import CameraAugment
 
-    return Augmentation(colour=t.augment, policy=t.photometric, camera=CameraAugment().only(tuple(t.camera_families)),
+    cam = CameraAugment().only(tuple(t.camera_families)).scaled(float(t.camera_p_scale))
+    return Augmentation(colour=t.augment, policy=t.photometric, camera=cam,
                         scale=tuple(float(v) for v in t.scale))
 
 
