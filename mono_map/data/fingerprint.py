@@ -39,7 +39,8 @@ def listing_digest(files: list[Path]) -> str:
 def sequence_fingerprint(seq, frames, parts: tuple[str, ...] = PARTS) -> dict[str, str]:
     """{part: hash} of what frames ``frames`` of the open sequence ``seq`` (:class:`KittiSequence`) hold:
     ``poses`` (their T_world_cam0), ``times``, ``calibration`` (P2, Tr), and the listings of their
-    ``images`` (image_2), ``scans`` (velodyne) and ``depth`` (depth_2, where present). ``parts`` picks
+    ``images`` (image_2), ``scans`` (velodyne) and ``depth`` (depth_2, where present; for any layout
+    the sequence reads). ``parts`` picks
     the ones an output depends on."""
     idx = np.asarray(list(frames), dtype=np.int64)
     out: dict[str, str] = {}
@@ -57,7 +58,7 @@ def sequence_fingerprint(seq, frames, parts: tuple[str, ...] = PARTS) -> dict[st
     if "scans" in parts and seq.velodyne_files:
         out["scans"] = listing_digest([seq.velodyne_files[i] for i in idx])
     if "depth" in parts:
-        d = seq.path / "depth_2"
+        d = getattr(seq, "depth_dir", None) or seq.path / "depth_2"   # raw drives: depth_02/data
         if d.is_dir():
             out["depth"] = listing_digest([d / seq.image_files[i].name for i in idx])
     return out
