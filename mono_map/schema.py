@@ -202,7 +202,7 @@ def env_value(name: str, environ: dict | None = None):
                                f"({var.help}), got {raw!r}") from None
         if not math.isfinite(value) or (var.lo is not None and value < var.lo) or \
                 (var.hi is not None and value > var.hi):
-            raise MonoMapError(f"{where}: {raw!r} is outside [{var.lo:g}, {var.hi:g}] ({var.help})")
+            raise MonoMapError(f"{where}: must be a finite number in [{var.lo:g}, {var.hi:g}] ({var.help}), got {raw!r}")
         return value
     if var.kind == "dir":
         from pathlib import Path

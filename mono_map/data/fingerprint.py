@@ -3,7 +3,7 @@
 Small data is hashed whole (the frames' poses, timestamps, the calibration); large data is fingerprinted
 by its listing — each frame file's name, size and modification time (ns) — so editing, replacing or
 re-rendering an image, scan or depth file changes the fingerprint without reading it. Measured cost
-for 4541 frames (13,623 files): ``tools/bench_fingerprint.py``, docs/reliability.md.
+for 4541 frames (13,623 files): ``benchmarks/bench_fingerprint.py``, docs/reliability.md.
 """
 
 from __future__ import annotations

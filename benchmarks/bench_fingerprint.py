@@ -2,7 +2,7 @@
 (mono_map/data/fingerprint.py), at KITTI 00's size: 4541 frames, each with image_2, velodyne and
 depth_2 files (13,623 files), plus poses, times and calibration.
 
-    .venv/bin/python tools/bench_fingerprint.py [--frames 4541] [--runs 5] [--root DIR]
+    .venv/bin/python benchmarks/bench_fingerprint.py [--frames 4541] [--runs 5] [--root DIR]
 
 Without --root it lays out empty stand-in files in a temporary folder (the fingerprint reads names,
 sizes and modification times, never the contents, so file sizes do not change its cost); with --root
