@@ -11,13 +11,16 @@ A map gets two halves:
   w = 1 / (1 + (σ_log / ``spread_ref``)²) (a confident pixel counts ~1, a two-mode or smeared one ~0)
   and its truncation band τ = clip(``trunc_sigma`` · μ · σ_log, ``trunc_min`` · res, ``trunc_max``)
   (metres). Every voxel of the blocks near the frame's surface (its cell centre) is projected into the
-  ray grid; where the signed distance along the optical axis sdf = μ − z ≥ −τ, the voxel's weighted
-  mean of clip(sdf, −τ, τ) / ``trunc_max`` and its summed weight are updated. The surface is the
-  TSDF's zero crossing between neighbouring voxels whose summed weights reach ``min_weight``
-  (open3d's ``extract_point_cloud``), each crossing marking the voxel nearer to it: one cell thick.
+  ray grid; where the signed distance along the optical axis sdf = μ − z ≥ −``trunc_behind`` · τ, the
+  voxel's weighted mean of clip(sdf, −τ, τ) / ``trunc_max`` and its summed weight are updated.
 
-The OctoMap's cells on the fused surface are set occupied (log-odds of ``prob_hit``, whatever the free
-half said: rays ending on a surface never free it), every other cell keeps its free-space value.
+``lag`` frames after a frame was fused (the views after it are in the TSDF by then; the last frame
+snaps the rest), each of its pixels looks along its own ray, within ``snap_window`` of μ, for the TSDF's
+zero crossing whose two sides have summed weight ≥ ``min_weight`` (:meth:`SurfaceFusion.snap_depths`);
+the cell at the crossing gets OctoMap's hit update, once per frame (the builder applies it). Pixels with
+no fused surface near them give no hit. Cells are then occupied by OctoMap's own log-odds: hits from
+the views that agree on a surface against the free half's misses; a frame's rays never free the cells
+they end on (the free half has no update there).
 Voxel (i, j, k) of the grid is OctoMap key (i, j, k) + 32768: the signed distance is evaluated at the
 cell's centre. Settings chosen on training town 06 (``tools/tune_fused.py``), never on 00.
 """
@@ -257,7 +260,9 @@ def fuse_prediction(fusion: SurfaceFusion, pred, valid: np.ndarray, K: np.ndarra
     """Fuse one frame's prediction (``pred.depth`` H×W expected depth, ``pred.probs`` K×H'×W' bin probabilities
     every ``pred.probs_step`` pixels, optional ``pred.p_beyond`` H×W) at every ``ray_step``-th pixel row and
     column of the ``valid`` (H×W bool) pixels into ``fusion``; ``K``: image_2's 3×3 intrinsics. Pixels more
-    likely beyond range than not, farther than ``max_depth`` or spread wider than ``max_spread`` are left out.
+    likely beyond range than not, farther than ``max_depth`` or spread wider than ``max_spread`` are left out
+    of the TSDF. The frame's expected depths (every ``snap_step``-th pixel of the grid, all of them: whether a
+    pixel finds a surface decides) wait in ``fusion.pending`` to be snapped (:func:`due_surface_points`).
     Returns the number of pixels fused."""
     cfg = fusion.cfg
     s, ps = int(ray_step), int(getattr(pred, "probs_step", 1))
