@@ -180,3 +180,15 @@ def test_replay_mixes_supervised_batches(tiny_root, tiny_ckpt, tmp_path):
     assert st["replay_scale"] is not None and st["replay_scale"] > 0
     _, w0 = last_weights(tmp_path / "s0")
     assert not all(torch.equal(w0[k], v) for k, v in st["model"].items())
+
+
+def test_a_corrupt_saved_state_starts_the_run_again(tiny_root, tiny_ckpt, tmp_path):
+    run(tiny_root, tiny_ckpt, tmp_path, 1, "s", "o")
+    state = next((tmp_path / "s").glob("*/state.pt"))
+    state.write_bytes(b"not a torch file")
+    messages = []
+    cfg = AdaptConfig(steps=2, batch_size=2, eval_every=1)
+    res = adapt(str(tiny_ckpt), tiny_root, "tiny", None, cfg, out_dir=tmp_path / "o", state_dir=tmp_path / "s",
+                log=messages.append)
+    assert any("unreadable saved state" in m for m in messages)
+    assert last_weights(tmp_path / "s")[0] == 2 and res.checkpoint.is_file()

@@ -248,8 +248,15 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
 
     state_path = Path(state_dir or default_state_dir()) / run_id / "state.pt"
     start, curve, best = 0, [], {"error": float("inf"), "step": 0, "state": None}
+    st = None
     if resume and state_path.is_file():
-        st = torch.load(state_path, weights_only=False)
+        try:
+            st = torch.load(state_path, weights_only=False)
+            st["step"], st["model"], st["optimizer"], st["curve"], st["best"]   # noqa: B018 - all there
+        except Exception as exc:  # noqa: BLE001 - a truncated or foreign file: the run starts again
+            log(f"adapt: {state_path}: unreadable saved state ({type(exc).__name__}); starting again")
+            st = None
+    if st is not None:
         if st["step"] <= cfg.steps:
             model.load_state_dict(st["model"])
             adapter.optimizer.load_state_dict(st["optimizer"])
