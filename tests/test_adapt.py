@@ -167,6 +167,10 @@ def test_bad_inputs_one_line(tiny_root, tiny_ckpt, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], (extra, err)
     assert not (tmp_path / "o").exists() or not list((tmp_path / "o").glob("*.pt"))
+    # a replay sequence is only read, never rendered (the data root may be shared)
+    with pytest.raises(MonoMapError, match="not found"):
+        run(tiny_root, tiny_ckpt, tmp_path, 1, "sr", "or", replay=0.5, replay_seq="05")
+    assert not (tiny_root / "sequences" / "05").exists()
     with pytest.raises(MonoMapError, match="00 is the held-out"):
         AdaptConfig(replay=1.0, replay_seq="00").validate()
 
