@@ -167,6 +167,10 @@ def test_bad_inputs_one_line(tiny_root, tiny_ckpt, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], (extra, err)
     assert not (tmp_path / "o").exists() or not list((tmp_path / "o").glob("*.pt"))
+    # a replay sequence is only read, never rendered (the data root may be shared)
+    with pytest.raises(MonoMapError, match="not found"):
+        run(tiny_root, tiny_ckpt, tmp_path, 1, "sr", "or", replay=0.5, replay_seq="05")
+    assert not (tiny_root / "sequences" / "05").exists()
     with pytest.raises(MonoMapError, match="00 is the held-out"):
         AdaptConfig(replay=1.0, replay_seq="00").validate()
 
@@ -180,3 +184,15 @@ def test_replay_mixes_supervised_batches(tiny_root, tiny_ckpt, tmp_path):
     assert st["replay_scale"] is not None and st["replay_scale"] > 0
     _, w0 = last_weights(tmp_path / "s0")
     assert not all(torch.equal(w0[k], v) for k, v in st["model"].items())
+
+
+def test_a_corrupt_saved_state_starts_the_run_again(tiny_root, tiny_ckpt, tmp_path):
+    run(tiny_root, tiny_ckpt, tmp_path, 1, "s", "o")
+    state = next((tmp_path / "s").glob("*/state.pt"))
+    state.write_bytes(b"not a torch file")
+    messages = []
+    cfg = AdaptConfig(steps=2, batch_size=2, eval_every=1)
+    res = adapt(str(tiny_ckpt), tiny_root, "tiny", None, cfg, out_dir=tmp_path / "o", state_dir=tmp_path / "s",
+                log=messages.append)
+    assert any("unreadable saved state" in m for m in messages)
+    assert last_weights(tmp_path / "s")[0] == 2 and res.checkpoint.is_file()

@@ -29,6 +29,7 @@ import numpy as np
 from mono_map.errors import MonoMapError
 
 ADAPT_VERSION = 1
+DEFAULT_FRAMES = 500   # frames adapted on unless told (build's default too); a synthetic sequence is rendered that far
 
 
 @dataclass(frozen=True)
@@ -185,7 +186,7 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
           out_dir: str | os.PathLike = "outputs/adapt", state_dir: str | os.PathLike | None = None,
           resume: bool = True, replay_root=None, log=print) -> AdaptResult:
     """Adapt checkpoint ``base`` (path or shipped name; None = the shipped model) to sequence ``seq_name``
-    under ``data_root`` on ``frames`` (a FrameSelection; None = all) and write the best checkpoint to
+    under ``data_root`` on ``frames`` (a FrameSelection; None = the first :data:`DEFAULT_FRAMES`, as build) and write the best checkpoint to
     ``out_dir``. Every input is checked before any work; MonoMapError names the bad one."""
     import torch
 
@@ -203,11 +204,15 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
     if model.head.kind != "bins" or model.head.dropout:
         raise MonoMapError(f"--model: {path}: a '{model.cfg.head}' head; adapt needs a bin distribution "
                            "(binary or softmax head) whose expected depth it can warp with")
+    if frames is None:   # as build: never a whole synthetic recipe rendered by default
+        from mono_map.frames import first_frames
+
+        frames = first_frames(DEFAULT_FRAMES)
     seq = prepare_sequence(data_root, seq_name, frames)
     if seq.poses_cam0 is None:
         raise MonoMapError(f"{seq.pose_path}: no poses for sequence '{seq_name}'; adapt needs the sequence's "
                            "metric poses")
-    indices = frames.resolve(len(seq)) if frames is not None else list(range(len(seq)))
+    indices = frames.resolve(len(seq))
     if len(indices) < 2:
         raise MonoMapError(f"--frames: adapt needs at least 2 frames of a moving camera, got {len(indices)}")
     centres = np.stack([seq.T_world_cam2(i)[:3, 3] for i in indices])
@@ -219,7 +224,7 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
                            f"{steps.max():.3f} m; lower --min-baseline or choose other --frames)")
     replay_seq = None
     if cfg.replay > 0:
-        replay_seq = prepare_sequence(replay_root or data_root, cfg.replay_seq)
+        replay_seq = prepare_sequence(replay_root or data_root, cfg.replay_seq, render=False)  # read only
         if not replay_seq.velodyne_files:
             raise MonoMapError(f"--replay-seq: {replay_seq.path}: no velodyne scans for supervised replay")
     out_dir = Path(out_dir)
@@ -248,8 +253,15 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
 
     state_path = Path(state_dir or default_state_dir()) / run_id / "state.pt"
     start, curve, best = 0, [], {"error": float("inf"), "step": 0, "state": None}
+    st = None
     if resume and state_path.is_file():
-        st = torch.load(state_path, weights_only=False)
+        try:
+            st = torch.load(state_path, weights_only=False)
+            st["step"], st["model"], st["optimizer"], st["curve"], st["best"]   # noqa: B018 - all there
+        except Exception as exc:  # noqa: BLE001 - a truncated or foreign file: the run starts again
+            log(f"adapt: {state_path}: unreadable saved state ({type(exc).__name__}); starting again")
+            st = None
+    if st is not None:
         if st["step"] <= cfg.steps:
             model.load_state_dict(st["model"])
             adapter.optimizer.load_state_dict(st["optimizer"])

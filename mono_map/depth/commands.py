@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from mono_map.errors import MonoMapError
-from mono_map.frames import FrameSelection, first_frames, parse_frames
+from mono_map.frames import FrameSelection, parse_frames
 
 
 def register(subparsers) -> None:
@@ -103,7 +103,6 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_adapt)
 
 
-ADAPT_FRAMES = 500  # adapt's default: the first 500 frames, as build and eval (a synthetic recipe is never rendered whole)
 EVAL_FRAMES = FrameSelection("0:500:10", stop=500, step=10, up_to=True)  # eval-depth's default
 
 
@@ -358,7 +357,7 @@ def run_adapt(args) -> int:
                       replay=args.replay, replay_seq=args.replay_seq,
                       eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision())
     cfg.validate()
-    selection = parse_frames(args.frames, default=first_frames(ADAPT_FRAMES))
+    selection = parse_frames(args.frames) if args.frames is not None else None   # None: adapt's default
     torch.set_num_threads(args.threads)
     res = adapt(args.model, args.data_root, args.seq, selection, cfg, out_dir=args.out,
                 resume=not args.no_resume, replay_root=args.replay_root,
