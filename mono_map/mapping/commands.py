@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 from mono_map.io import prepare_output_dir
@@ -25,6 +26,21 @@ def _add_octomap_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--clamp-min", type=float, default=d.clamp_min, help=f"default {d.clamp_min}")
     g.add_argument("--clamp-max", type=float, default=d.clamp_max, help=f"default {d.clamp_max}")
 
+
+# --fused-* options: FusedConfig's fields, each with what it means (the default is the dataclass's)
+FUSED_OPTIONS = (
+    ("spread_ref", "log-depth spread at which a pixel's fusion weight halves"),
+    ("min_weight", "summed weight a cell needs to be surface (~ confident views)"),
+    ("trunc_sigma", "truncation band in metric spreads"),
+    ("trunc_min", "narrowest truncation band, cells"),
+    ("trunc_max", "widest truncation band, metres"),
+    ("max_depth", "pixels farther than this (metres) are not fused"),
+    ("max_spread", "pixels with a wider log-depth spread are not fused"),
+    ("trunc_behind", "cells up to this many bands behind a pixel's depth are fused"),
+    ("lag", "frames after which a frame's pixels are snapped to the fused surface"),
+    ("snap_window", "how far (metres) from a pixel's expected depth its ray looks for the fused surface"),
+    ("snap_step", "snap every N-th ray of the --ray-step grid"),
+)
 
 def _add_integration_args(p: argparse.ArgumentParser) -> None:
     from mono_map.mapping.distribution import DistributionConfig
@@ -58,30 +74,11 @@ def _add_integration_args(p: argparse.ArgumentParser) -> None:
 
     f = FusedConfig()
     g = p.add_argument_group("fused surface (--integrate fused; the free space uses the distribution options)")
-    g.add_argument("--fused-spread-ref", type=float, default=f.spread_ref,
-                   help=f"log-depth spread at which a pixel's fusion weight halves (default {f.spread_ref:g})")
-    g.add_argument("--fused-min-weight", type=float, default=f.min_weight,
-                   help=f"summed weight a cell needs to be surface (default {f.min_weight:g}; ~ confident views)")
-    g.add_argument("--fused-trunc-sigma", type=float, default=f.trunc_sigma,
-                   help=f"truncation band in metric spreads (default {f.trunc_sigma:g})")
-    g.add_argument("--fused-trunc-min", type=float, default=f.trunc_min,
-                   help=f"narrowest truncation band, cells (default {f.trunc_min:g})")
-    g.add_argument("--fused-trunc-max", type=float, default=f.trunc_max,
-                   help=f"widest truncation band, metres (default {f.trunc_max:g})")
-    g.add_argument("--fused-max-depth", type=float, default=f.max_depth,
-                   help=f"pixels farther than this (metres) are not fused (default {f.max_depth:g})")
-    g.add_argument("--fused-max-spread", type=float, default=f.max_spread,
-                   help=f"pixels with a wider log-depth spread are not fused (default {f.max_spread:g})")
-    g.add_argument("--fused-trunc-behind", type=float, default=f.trunc_behind,
-                   help=f"cells up to this many bands behind a pixel's depth are fused (default {f.trunc_behind:g})")
-    g.add_argument("--fused-lag", type=int, default=f.lag,
-                   help=f"frames after which a frame's pixels are snapped to the fused surface (default {f.lag})")
-    g.add_argument("--fused-snap-window", type=float, default=f.snap_window,
-                   help=f"how far (metres) from a pixel's expected depth its ray looks for the fused surface "
-                        f"(default {f.snap_window:g})")
-    g.add_argument("--fused-snap-step", type=int, default=f.snap_step,
-                   help=f"snap every N-th ray of the --ray-step grid (default {f.snap_step})")
-
+    kinds = {fld.name: {"int": int, "float": float}[str(fld.type)] for fld in dataclasses.fields(FusedConfig)}
+    for name, what in FUSED_OPTIONS:
+        default = getattr(f, name)
+        g.add_argument("--fused-" + name.replace("_", "-"), type=kinds[name], default=default,
+                       help=f"{what} (default {default:g})")
 
 def distribution_config(args):
     """The ``--integrate distribution`` settings of the options, checked (MonoMapError naming the option)."""
@@ -97,11 +94,7 @@ def fused_config(args):
     """The ``--integrate fused`` surface settings of the options, checked (MonoMapError naming the option)."""
     from mono_map.mapping.fused import FusedConfig, check_fused_config
 
-    return check_fused_config(FusedConfig(
-        spread_ref=args.fused_spread_ref, min_weight=args.fused_min_weight, trunc_sigma=args.fused_trunc_sigma,
-        trunc_min=args.fused_trunc_min, trunc_max=args.fused_trunc_max, max_depth=args.fused_max_depth,
-        max_spread=args.fused_max_spread, trunc_behind=args.fused_trunc_behind, lag=args.fused_lag,
-        snap_window=args.fused_snap_window, snap_step=args.fused_snap_step))
+    return check_fused_config(FusedConfig(**{name: getattr(args, "fused_" + name) for name, _ in FUSED_OPTIONS}))
 
 
 def register(subparsers) -> None:
