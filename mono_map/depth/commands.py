@@ -221,9 +221,8 @@ def run_eval_depth(args) -> int:
     import torch
 
     from mono_map.eval.depth_evaluation import evaluate_model, markdown_report, object_frames
-    from mono_map.viz.plots import plot_hypotheses, plot_sparsification
     from mono_map.depth.inference import DepthPredictor, shipped_names
-    from mono_map.io import prepare_output_dir, staged_dir, write_json_atomic, write_text_atomic
+    from mono_map.io import prepare_output_dir
 
     selection = parse_frames(args.frames, default=EVAL_FRAMES)
     if args.cap <= 0 or args.cap != args.cap:
@@ -276,17 +275,29 @@ def run_eval_depth(args) -> int:
                  f"{', Garg crop' if args.garg_crop else ''}, cap {args.cap:g} m)")
     results = {h: evaluate_model(p, make(), n, cap=args.cap, garg_crop=args.garg_crop, desc=f"eval {h}")
                for h, p in predictors.items()}
-    out = Path(args.out)
-    md = markdown_report(results, title)
-    with staged_dir(out) as stage:  # the report, its JSON and both pictures: all published or none
-        write_json_atomic(stage / f"depth_{where}.json", {"title": title, "args": {k: v for k, v in vars(args).items()
-                                                                                    if k != "func"}, "results": results})
+    publish_depth_report(Path(args.out), where, markdown_report(results, title),
+                         {"title": title, "args": cli_args(args), "results": results}, results)
+    return 0
+
+
+def cli_args(args) -> dict:
+    """The command line's options as a JSON-able dict (for a report's provenance)."""
+    return {k: v for k, v in vars(args).items() if k != "func"}
+
+
+def publish_depth_report(out: Path, where: str, md: str, payload: dict, results: dict) -> None:
+    """Write depth_<where>.json/.md and the sparsification and hypotheses pictures into ``out`` as one set
+    (all published or, on a failure or a signal, none), then print the report."""
+    from mono_map.io import staged_dir, write_json_atomic, write_text_atomic
+    from mono_map.viz.plots import plot_hypotheses, plot_sparsification
+
+    with staged_dir(out) as stage:
+        write_json_atomic(stage / f"depth_{where}.json", payload)
         write_text_atomic(stage / f"depth_{where}.md", md)
         plot_sparsification(results, stage / f"sparsification_{where}.png")
         plot_hypotheses(results, stage / f"hypotheses_{where}.png")
     print(md)
     print(f"wrote {out}/depth_{where}.(json|md), sparsification_{where}.png, hypotheses_{where}.png")
-    return 0
 
 
 def check_split_args(args):
@@ -320,26 +331,17 @@ def run_split(args, sel, predictors: dict) -> int:
     """eval-depth --split: each model under Eigen's protocol and over the full image (one pass); Table I + the
     usual report."""
     from mono_map.eval.depth_evaluation import eigen_frames, evaluate_model, markdown_report, table_one
-    from mono_map.io import write_json_atomic, write_text_atomic
-    from mono_map.viz.plots import plot_hypotheses, plot_sparsification
 
     n = len(sel.frames)
     results = {h: evaluate_model(p, eigen_frames(sel), n, cap=80.0, garg_crop=True, desc=f"eval {h}")
                for h, p in predictors.items()}
     where = "eigen" if args.split == "eigen" else f"split_{sel.path.stem}"
     title = f"Depth evaluation on the {sel.path.name} split ({n} of {sel.n_listed} frames found)"
-    out = Path(args.out)
-    write_json_atomic(out / f"depth_{where}.json", {
-        "title": title, "split": str(sel.path), "n_listed": sel.n_listed, "n_found": n,
-        "missing_drives": sel.missing_drives, "args": {k: v for k, v in vars(args).items() if k != "func"},
-        "results": results})
+    payload = {"title": title, "split": str(sel.path), "n_listed": sel.n_listed, "n_found": n,
+               "missing_drives": sel.missing_drives, "args": cli_args(args), "results": results}
     md = (table_one(results, title, n, sel.n_listed) + "\n"
           + markdown_report(results, f"{title}: Eigen's protocol in detail").replace("# ", "## ", 1))
-    write_text_atomic(out / f"depth_{where}.md", md)
-    plot_sparsification(results, out / f"sparsification_{where}.png")
-    plot_hypotheses(results, out / f"hypotheses_{where}.png")
-    print(md)
-    print(f"wrote {out}/depth_{where}.(json|md), sparsification_{where}.png, hypotheses_{where}.png")
+    publish_depth_report(Path(args.out), where, md, payload, results)
     return 0
 
 
