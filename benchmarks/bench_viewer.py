@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(2)
     from mono_map.data.prepare import prepare_sequence
     from mono_map.frames import parse_frames
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.viz.rerun_stream import RerunMapLogger
 
     selection = parse_frames(args.frames)

@@ -59,7 +59,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from mono_map.data.kitti import open_sequence
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.viz.rerun_stream import RerunMapLogger
 
     a, b = (int(x) for x in args.frames.split(":"))

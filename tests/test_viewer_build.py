@@ -11,7 +11,7 @@ from rrd_readback import map_cells_at, read_recording
 
 def test_short_build_writes_recording_with_expected_paths_and_frames(tiny_root, tmp_path):
     from mono_map.data.kitti import open_sequence
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.mapping.octree import write_tree_bt
 
     seq = open_sequence(tiny_root, "tiny")

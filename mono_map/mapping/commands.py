@@ -208,7 +208,8 @@ def run_build(args) -> int:
     from mono_map.errors import MonoMapError
     from mono_map.frames import first_frames, parse_frames
     from mono_map.io import check_output_file
-    from mono_map.mapping.build import SOURCES as BUILD_SOURCES, load_predictor
+    from mono_map.mapping.build import SOURCES as BUILD_SOURCES
+    from mono_map.mapping.inputs import load_predictor
     from mono_map.mapping.select import check_keep
 
     # every option first: nothing is opened, rendered or written before they all pass
