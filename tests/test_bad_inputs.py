@@ -868,7 +868,8 @@ def test_the_table_never_mixes_data_states_and_rebuilds_only_what_changed(ctx, c
 
 def test_training_cache_is_keyed_by_the_frames_contents(ctx):
     """Replacing a training image (same name) makes a new training cache instead of reusing the old one."""
-    from mono_map.depth.train import DataConfig, RunConfig, build_cache
+    from mono_map.depth.train_config import DataConfig, RunConfig
+    from mono_map.depth.train_data import build_cache
 
     cfg = RunConfig(name="r", model={"arch": "small", **_TINY_NET},
                     data=DataConfig(root=str(ctx.data), sequences=("tiny",), frames=2, cache_dir=str(ctx.tmp / "cache")),

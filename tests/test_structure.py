@@ -45,7 +45,6 @@ MAX_LINES = 450
 KNOWN_LONG: set[str] = {
     "mono_map/data/kitti.py",
     "mono_map/data/synth/town.py",
-    "mono_map/depth/train.py",
     "mono_map/mapping/commands.py",
     "mono_map/mapping/jobs.py",
     "mono_map/mapping/raycast_c.py",
