@@ -1049,7 +1049,7 @@ def test_stale_staging_folders_and_backups_of_dead_runs_are_swept(tmp_path):
 
 def test_view_save_on_a_full_disk_is_one_line(ctx, capsys, monkeypatch):
     import mono_map.io as mio
-    import mono_map.viz.rerun_stream as rs
+    import mono_map.viz.rerun_cells as rs
 
     monkeypatch.setattr(mio, "free_bytes", lambda path: 1 << 20)
     assert cli_main(["view", str(ctx.good_bt), "--save", str(ctx.out / "v.rrd")]) == 2

@@ -48,7 +48,6 @@ KNOWN_LONG: set[str] = {
     "mono_map/mapping/commands.py",
     "mono_map/mapping/jobs.py",
     "mono_map/mapping/raycast_c.py",
-    "mono_map/viz/rerun_stream.py",
 }
 
 

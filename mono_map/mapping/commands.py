@@ -257,10 +257,11 @@ def run_build(args) -> int:
     observers = []
     if rrd is not None or args.viewer:
         from mono_map.viz.rerun_stream import RerunMapLogger
+        from mono_map.viz.stream_options import StreamOptions
 
         def logger(path=None):
             return RerunMapLogger(rrd=path, spawn=args.viewer, reference_map=args.reference_map,
-                                  resolution=cfg.resolution, image_size=seq.image_size)
+                                  options=StreamOptions(resolution=cfg.resolution, image_size=seq.image_size))
         if rrd is None:
             observers.append(logger())
     bt, stats = build_and_write(job, seq, out_dir, name=args.name, observers=observers, predictor=predictor,
