@@ -9,7 +9,10 @@ origin; ``depth-gt`` back-projects the synthetic ground-truth ``depth_2`` throug
 (every pixel within the bin range, as keep 1.0: the camera's upper bound). Integration is the exact
 batched path of :mod:`mono_map.mapping.integrate`; with ``integrate="distribution"`` every valid
 pixel's whole depth distribution sets the updates along its ray instead
-(:mod:`mono_map.mapping.distribution`).
+(:mod:`mono_map.mapping.distribution`, one frame: :mod:`mono_map.mapping.distribution_frame`).
+
+Here one map's :class:`MapBuilder` (checked by :func:`make_builder`); a frame's shared image and
+predictions are :mod:`mono_map.mapping.inputs`, several maps in one pass :mod:`mono_map.mapping.pipeline`.
 """
 
 from __future__ import annotations
