@@ -66,7 +66,7 @@ def load_scans(args) -> list[tuple[np.ndarray, np.ndarray]]:
     scans = []
     predictor = None
     if args.source == "mono":
-        from mono_map.mapping.build import load_predictor
+        from mono_map.mapping.inputs import load_predictor
 
         predictor = load_predictor(None if args.model == "shipped" else args.model)
     for i in frames:
@@ -120,7 +120,11 @@ def agreement(a, b) -> dict:
 
 def bench_integrations(args) -> int:
     """--integrate: keep vs distribution, back to back, on the same frames (see the module docstring)."""
-    from mono_map.mapping.build import FrameInputs, build_map, load_predictor, make_builder
+    from mono_map.mapping.build import make_builder
+
+    from mono_map.mapping.inputs import FrameInputs, load_predictor
+
+    from mono_map.mapping.pipeline import build_map
 
     selection = parse_frames(args.frames, default=first_frames(500))
     seq = prepare_sequence(args.data_root, args.seq, selection)

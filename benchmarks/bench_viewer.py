@@ -55,8 +55,9 @@ def main(argv=None) -> int:
     torch.set_num_threads(2)
     from mono_map.data.prepare import prepare_sequence
     from mono_map.frames import parse_frames
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.viz.rerun_stream import RerunMapLogger
+    from mono_map.viz.stream_options import StreamOptions
 
     selection = parse_frames(args.frames)
     seq = prepare_sequence(args.data_root, args.seq, selection)
@@ -77,7 +78,8 @@ def main(argv=None) -> int:
         obs, info = [CountingObserver()], {}
         logger = None
         if with_rrd:
-            logger = RerunMapLogger(rrd=tmp / "bench.rrd", map_every=args.map_every, image_size=seq.image_size)
+            logger = RerunMapLogger(rrd=tmp / "bench.rrd",
+                                    options=StreamOptions(map_every=args.map_every, image_size=seq.image_size))
             obs.append(logger)  # build_map closes its observers (the .rrd is complete on return)
         t0, c0 = time.perf_counter(), time.process_time()
         build_map(seq, source=args.source, keep=args.keep, frames=frames, observers=obs, show_progress=False,

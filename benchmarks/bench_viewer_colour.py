@@ -59,8 +59,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from mono_map.data.kitti import open_sequence
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.viz.rerun_stream import RerunMapLogger
+    from mono_map.viz.stream_options import StreamOptions
 
     a, b = (int(x) for x in args.frames.split(":"))
     seq = open_sequence(args.data_root, args.seq, frames=b)
@@ -76,7 +77,8 @@ def main(argv=None) -> int:
             for colour, ups in (("height", updates), ("probability", prob_updates)):
                 rrd = Path(tmp) / f"{colour}.rrd"
                 t0 = time.perf_counter()
-                logger = RerunMapLogger(rrd=rrd, resolution=res, image_size=seq.image_size, colour=colour)
+                logger = RerunMapLogger(rrd=rrd, options=StreamOptions(resolution=res, image_size=seq.image_size,
+                                                                      colour=colour))
                 for u in ups:
                     logger(u)
                 logger.close()

@@ -1,7 +1,7 @@
 """Small configuration dataclasses shared across the pipeline (no global state).
 
 One config per domain, each defined once: depth bins are ``mono_map.depth.bins.DepthBins``, the
-network ``mono_map.depth.networks.ModelConfig``, training ``mono_map.depth.train``'s dataclasses,
+network ``mono_map.depth.networks.ModelConfig``, training ``mono_map.depth.train_config``'s dataclasses,
 OctoMap ``OctoMapConfig`` here.
 """
 

@@ -34,11 +34,12 @@ def run(args: argparse.Namespace) -> int:
     from mono_map.data.prepare import check_data_root, prepare_sequence
     from mono_map.eval.table import TableJob
     from mono_map.frames import first_frames, frames_tag, parse_frames
-    from mono_map.mapping.build import load_predictor
+    from mono_map.mapping.inputs import load_predictor
     from mono_map.mapping.commands import DEFAULT_FRAMES, run_table
     from mono_map.mapping.jobs import (MapJob, MapRequest, build_and_write, build_and_write_all, model_digest,
                                        reusable)
     from mono_map.viz.rerun_stream import RerunMapLogger
+    from mono_map.viz.stream_options import StreamOptions
 
     t0 = time.perf_counter()
     selection = parse_frames(args.frames, default=first_frames(DEFAULT_FRAMES))
@@ -77,8 +78,9 @@ def run(args: argparse.Namespace) -> int:
         def logger(path):
             # the map is re-sent every 5 frames (images and stats every frame): keeps the recording
             # near 0.56 MB/frame instead of ~1 MB/frame
-            return RerunMapLogger(rrd=path, reference_map=ref_bt, resolution=cfg.resolution,
-                                  image_size=seq.image_size, map_every=5)
+            return RerunMapLogger(rrd=path, reference_map=ref_bt,
+                                  options=StreamOptions(resolution=cfg.resolution, image_size=seq.image_size,
+                                                        map_every=5))
 
         requests.append(MapRequest(keep_job, rrd=rrd, logger=logger))
     if not reusable(all_job.path(out_dir), all_job)[0]:

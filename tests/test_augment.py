@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from mono_map.depth import augment as A
-from mono_map.depth.train import (Augmentation, TrainConfig, augment_crop, load_run_config, sample_batch,
-                                  validate_augmentation)
+from mono_map.depth.train_config import TrainConfig, load_run_config, validate_augmentation
+from mono_map.depth.train_data import Augmentation, augment_crop, sample_batch
 from mono_map.errors import MonoMapError
 
 
@@ -127,7 +127,7 @@ def test_default_policy_reproduces_the_old_augmentation_bit_for_bit():
             for a, b, c in zip(old, new, via):
                 np.testing.assert_array_equal(a, b)
                 np.testing.assert_array_equal(a, c)
-    from mono_map.depth.train import augmentation
+    from mono_map.depth.train_data import augmentation
 
     assert augmentation(TrainConfig()).policy == "godard" and augmentation(TrainConfig()).scale == (1.0, 1.0)
 

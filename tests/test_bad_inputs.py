@@ -868,7 +868,8 @@ def test_the_table_never_mixes_data_states_and_rebuilds_only_what_changed(ctx, c
 
 def test_training_cache_is_keyed_by_the_frames_contents(ctx):
     """Replacing a training image (same name) makes a new training cache instead of reusing the old one."""
-    from mono_map.depth.train import DataConfig, RunConfig, build_cache
+    from mono_map.depth.train_config import DataConfig, RunConfig
+    from mono_map.depth.train_data import build_cache
 
     cfg = RunConfig(name="r", model={"arch": "small", **_TINY_NET},
                     data=DataConfig(root=str(ctx.data), sequences=("tiny",), frames=2, cache_dir=str(ctx.tmp / "cache")),
@@ -1048,7 +1049,7 @@ def test_stale_staging_folders_and_backups_of_dead_runs_are_swept(tmp_path):
 
 def test_view_save_on_a_full_disk_is_one_line(ctx, capsys, monkeypatch):
     import mono_map.io as mio
-    import mono_map.viz.rerun_stream as rs
+    import mono_map.viz.rerun_cells as rs
 
     monkeypatch.setattr(mio, "free_bytes", lambda path: 1 << 20)
     assert cli_main(["view", str(ctx.good_bt), "--save", str(ctx.out / "v.rrd")]) == 2

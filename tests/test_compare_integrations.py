@@ -59,7 +59,7 @@ def test_max_range_sweep_builds_each_keep_map_per_range(tiny_root, tmp_path):
     from mono_map.config import OctoMapConfig
     from mono_map.data.kitti import open_sequence
     from mono_map.eval.map_metrics import surface_precision
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.mapping.oracle import NoisyGroundTruthPredictor
     from mono_map.mapping.octree import tree_leaves
 

@@ -152,7 +152,7 @@ def leaves_of(result):
 @pytest.mark.parametrize("source", ["lidar-fov", "lidar", "depth-gt", "mono"])
 def test_maps_cell_for_cell(exact_root, source):
     from mono_map.config import OctoMapConfig
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 
     out = []

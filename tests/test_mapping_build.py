@@ -16,7 +16,7 @@ from mono_map.config import OctoMapConfig
 from mono_map.data.kitti import open_sequence
 from mono_map.depth.inference import DepthPrediction
 from mono_map.errors import MonoMapError
-from mono_map.mapping.build import build_map
+from mono_map.mapping.pipeline import build_map
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.jobs import MapJob, build_and_write, reusable
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor
@@ -168,7 +168,9 @@ def test_metric_ranking_prefers_near_pixels_of_equal_relative_spread():
 def test_build_ranked_by_metric_keeps_nearer_points(tiny_root):
     """The same keep 0.5 map of the oracle ranked by metric entropy keeps end points nearer the camera on
     average than ranked by entropy, and as many of them."""
-    from mono_map.mapping.build import make_builder, run_builders
+    from mono_map.mapping.build import make_builder
+
+    from mono_map.mapping.pipeline import run_builders
 
     seq = open_sequence(tiny_root, "tiny")
     kept = {}
@@ -449,7 +451,7 @@ class CountingOracle(NoisyGroundTruthPredictor):
 
 
 def test_maps_of_one_pass_equal_maps_built_alone_and_predict_once(tiny_root, tmp_path):
-    from mono_map.mapping.build import build_maps
+    from mono_map.mapping.pipeline import build_maps
     from mono_map.mapping.jobs import MapRequest, build_and_write_all
     from mono_map.mapping.octree import tree_leaves
 
@@ -527,7 +529,7 @@ def test_look_ahead_prediction_gives_the_frame_by_frame_maps(tiny_root):
     error, at most one frame ahead, observers closed."""
     import threading
 
-    from mono_map.mapping.build import make_builders, run_builders
+    from mono_map.mapping.pipeline import make_builders, run_builders
     from mono_map.mapping.octree import tree_leaves
 
     seq = open_sequence(tiny_root, "tiny")

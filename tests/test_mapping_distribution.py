@@ -351,7 +351,7 @@ class WallSequence:
 
 
 def test_depth_gt_map_of_a_hand_built_wall():
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
 
     res = build_map(WallSequence(), "depth-gt", show_progress=False)
     leaves = tree_leaves(res.tree)
@@ -369,7 +369,7 @@ def test_depth_gt_map_of_a_hand_built_wall():
 def test_oracle_distribution_build_with_an_observer(tiny_root):
     """The whole build path on the oracle's distributions: observers get every frame, cells become occupied."""
     from mono_map.data.kitti import open_sequence
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.mapping.distribution import DistributionConfig
     from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 
@@ -387,7 +387,7 @@ def test_oracle_distribution_build_with_an_observer(tiny_root):
 def test_heads_without_probabilities_are_one_clear_error(tiny_root):
     from mono_map.data.kitti import open_sequence
     from mono_map.depth.inference import DepthPrediction
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
 
     class NoProbs:
         def predict(self, image, with_probs=False, probs_step=1):
@@ -421,7 +421,8 @@ def test_p_beyond_is_mass_beyond_every_cell_and_probs_are_conditional():
     p_beyond > 1 - eps."""
     from mono_map.depth.bins import DepthBins
     from mono_map.depth.inference import DepthPrediction
-    from mono_map.mapping.build import bin_edges, distribution_frame
+    from mono_map.mapping.distribution_frame import distribution_frame
+    from mono_map.mapping.inputs import bin_edges
     from mono_map.mapping.distribution import DistributionConfig
     from mono_map.mapping.points import pixel_points_to_world
 
@@ -471,7 +472,7 @@ def test_probability_colouring_observers_get_updated_cells(tiny_root, integrate)
     """With an observer colouring by probability, every frame's update carries the cells it updated with
     the probability the final tree holds for them (last frame); without one, none are computed."""
     from mono_map.data.kitti import open_sequence
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 
     class Recorder(list):
@@ -676,7 +677,7 @@ def test_oracle_probabilities_at_a_pixel_step_are_its_full_maps_there(tiny_root)
 
 def test_probabilities_at_a_step_the_rays_cannot_use_are_one_clear_error(tiny_root):
     from mono_map.data.kitti import open_sequence
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.mapping.distribution import DistributionConfig
     from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 

@@ -9,7 +9,7 @@ from mono_map.config import OctoMapConfig
 from mono_map.depth.bins import DepthBins
 from mono_map.depth.inference import DepthPrediction
 from mono_map.errors import MonoMapError
-from mono_map.mapping.build import build_map
+from mono_map.mapping.pipeline import build_map
 from mono_map.mapping.distribution import DistributionConfig
 from mono_map.mapping.fused import FusedConfig, SurfaceFusion, check_fused_config, log_spread, pixel_weights
 from mono_map.mapping.integrate import MapIntegrator
@@ -184,7 +184,7 @@ def test_point_masses_through_the_free_half_give_the_keep_1_free_cells():
             return p
 
     # a point mass per pixel: one zero-width bin at the pixel's exact depth (the free half's own point masses)
-    from mono_map.mapping.build import distribution_frame
+    from mono_map.mapping.distribution_frame import distribution_frame
 
     integ = MapIntegrator(OctoMapConfig())
     for i in range(3):
@@ -195,7 +195,7 @@ def test_point_masses_through_the_free_half_give_the_keep_1_free_cells():
         edges = None
         # per-pixel edges are not a predictor's output: use the free half directly with point masses
         from mono_map.mapping.distribution import distribution_update
-        from mono_map.mapping.build import free_updates
+        from mono_map.mapping.distribution_frame import free_updates
 
         v, u = np.nonzero(valid)
         dd = d[v, u].astype(np.float64)

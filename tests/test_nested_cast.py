@@ -12,7 +12,7 @@ from mono_map.config import OctoMapConfig
 from mono_map.data.kitti import open_sequence
 from mono_map.errors import MonoMapError
 from mono_map.mapping import raycast, raycast_c
-from mono_map.mapping.build import build_map, build_maps, make_builders, share_ray_casts
+from mono_map.mapping.pipeline import build_map, build_maps, make_builders, share_ray_casts
 from mono_map.mapping.octree import morton_codes, tree_leaves
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 

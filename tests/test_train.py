@@ -9,8 +9,9 @@ import torch
 import torch.multiprocessing as mp
 
 from mono_map.depth.inference import DepthPredictor, load_checkpoint
-from mono_map.depth.train import (DataConfig, RunConfig, TrainConfig, downsample_depth, init_distributed,
-                                  load_run_config, sample_batch, train)
+from mono_map.depth.train import init_distributed, train
+from mono_map.depth.train_config import DataConfig, RunConfig, TrainConfig, load_run_config
+from mono_map.depth.train_data import downsample_depth, sample_batch
 from mono_map.errors import MonoMapError
 
 
@@ -182,7 +183,7 @@ def test_bf16_autocast_and_channels_last_train(tmp_path):
 def test_command_line_overrides(tmp_path):
     """`mono-map train --steps/--output/--precision/--threads`: None keeps the config, a value replaces it,
     a bad value is refused naming the option."""
-    from mono_map.depth.train import override
+    from mono_map.depth.train_config import override
 
     cfg = _cfg(tmp_path, steps=4, bf16=True)
     assert override(cfg) == cfg

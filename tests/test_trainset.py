@@ -11,7 +11,8 @@ from mono_map.data.synth.randomize import (TownSpec, apply_camera, frame_jitter,
                                            randomized_recipe, training_towns, validation_town)
 from mono_map.data.synth.trainset import (NO_SURFACE, TownCache, decode_depth, encode_depth, open_trainset,
                                           render_town, scaled_intrinsics)
-from mono_map.depth.train import DataConfig, TrainsetSampler, frame_target, subsample_targets
+from mono_map.depth.train_config import DataConfig
+from mono_map.depth.train_data import TrainsetSampler, frame_target, subsample_targets
 
 SPEC = TownSpec(name="t04_test", trajectory="04", first_pose=100, pose_stride=3, frames=3, seed=12345)
 
@@ -113,7 +114,8 @@ def test_training_validates_logs_the_curve_and_keeps_the_best(tiny_cache, tmp_pa
     from functools import partial
 
     from mono_map.depth.inference import load_checkpoint
-    from mono_map.depth.train import RunConfig, TrainConfig, train
+    from mono_map.depth.train import train
+    from mono_map.depth.train_config import RunConfig, TrainConfig
     from mono_map.eval.validation import validate
 
     tc = open_trainset(tiny_cache)[0]

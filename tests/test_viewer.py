@@ -11,6 +11,7 @@ from mono_map.cli import main as cli_main
 from mono_map.errors import MonoMapError
 from mono_map.viz.codec import cell_indices, pack, unpack
 from mono_map.viz.rerun_stream import RerunMapLogger
+from mono_map.viz.stream_options import StreamOptions
 from rrd_readback import latest_map_rows, map_cells_at, read_recording, voxel_cells
 
 RES = 0.2
@@ -77,7 +78,7 @@ def test_logger_writes_incremental_map_that_reads_back(tmp_path):
     script, expected = scripted_changes()
     rrd = tmp_path / "rec.rrd"
     rng = np.random.default_rng(0)
-    logger = RerunMapLogger(rrd=rrd, resolution=RES, block_cells=16)
+    logger = RerunMapLogger(rrd=rrd, options=StreamOptions(resolution=RES, block_cells=16))
     for i, (added, freed) in enumerate(script):
         logger(make_update(i, added, freed, rng))
         assert not rrd.exists(), "the recording must appear only when complete"
@@ -122,7 +123,7 @@ def test_logger_map_every_batches_and_close_flushes(tmp_path):
     script, expected = scripted_changes()
     rrd = tmp_path / "batched.rrd"
     rng = np.random.default_rng(1)
-    with RerunMapLogger(rrd=rrd, resolution=RES, block_cells=16, map_every=2) as logger:
+    with RerunMapLogger(rrd=rrd, options=StreamOptions(resolution=RES, block_cells=16, map_every=2)) as logger:
         for i, (added, freed) in enumerate(script):
             logger(make_update(i, added, freed, rng))
     rows = read_recording(rrd)
@@ -135,7 +136,7 @@ def test_logger_map_every_batches_and_close_flushes(tmp_path):
 def test_logger_without_depth_or_images_and_with_reference_map(tmp_path, small_bt):
     bt, cells = small_bt
     rrd = tmp_path / "lidar.rrd"
-    logger = RerunMapLogger(rrd=rrd, reference_map=bt, resolution=RES)
+    logger = RerunMapLogger(rrd=rrd, reference_map=bt, options=StreamOptions(resolution=RES))
     rng = np.random.default_rng(2)
     u = make_update(0, {(1, 2, 3)}, set(), rng)
     u.depth = u.entropy = u.keep_mask = None  # a LiDAR source
@@ -153,13 +154,14 @@ def test_logger_rejects_bad_options(tmp_path):
     with pytest.raises(MonoMapError, match="--rrd"):
         RerunMapLogger(rrd=None, spawn=False)
     with pytest.raises(MonoMapError, match="cells"):
-        RerunMapLogger(rrd=tmp_path / "x.rrd", cells="spheres")
+        RerunMapLogger(rrd=tmp_path / "x.rrd", options=StreamOptions(cells="spheres"))
     with pytest.raises(MonoMapError, match="nope.bt"):
         RerunMapLogger(rrd=tmp_path / "x.rrd", reference_map=tmp_path / "nope.bt")
 
 
 def test_logger_rejects_cells_of_another_resolution(tmp_path):
-    logger = RerunMapLogger(rrd=tmp_path / "r.rrd", resolution=0.1)  # the "build" below uses 0.2 m cells
+    # the "build" below uses 0.2 m cells
+    logger = RerunMapLogger(rrd=tmp_path / "r.rrd", options=StreamOptions(resolution=0.1))
     with pytest.raises(MonoMapError, match="resolution"):
         logger(make_update(0, {(1, 2, 3), (4, 5, 6)}, set(), np.random.default_rng(5)))
     logger.abort()
@@ -272,7 +274,7 @@ def test_logger_colours_cells_by_occupancy_probability(tmp_path):
     rng = np.random.default_rng(11)
     prob: dict = {}
     rrd = tmp_path / "prob.rrd"
-    logger = RerunMapLogger(rrd=rrd, resolution=RES, block_cells=16, colour="probability")
+    logger = RerunMapLogger(rrd=rrd, options=StreamOptions(resolution=RES, block_cells=16, colour="probability"))
     expected = []
     for i in range(4):
         if i == 2:   # only probabilities of occupied cells change: no cell appears or disappears
@@ -309,7 +311,7 @@ def test_probability_colours_match_the_point_style(tmp_path):
     from mono_map.viz.codec import probability_colours
 
     rrd = tmp_path / "pts.rrd"
-    logger = RerunMapLogger(rrd=rrd, resolution=RES, cells="points", colour="probability")
+    logger = RerunMapLogger(rrd=rrd, options=StreamOptions(resolution=RES, cells="points", colour="probability"))
     u = make_update(0, {(1, 2, 3), (4, 5, 6)}, set(), np.random.default_rng(12))
     u.updated_cells, u.updated_probability = centres({(1, 2, 3), (4, 5, 6)}), np.array([0.55, 0.95])
     logger(u)
@@ -324,10 +326,10 @@ def test_probability_colours_match_the_point_style(tmp_path):
 
 
 def test_probability_colour_needs_probabilities(tmp_path):
-    logger = RerunMapLogger(rrd=tmp_path / "p.rrd", resolution=RES, colour="probability")
+    logger = RerunMapLogger(rrd=tmp_path / "p.rrd", options=StreamOptions(resolution=RES, colour="probability"))
     with pytest.raises(MonoMapError, match="updated_probability"):
         logger(make_update(0, {(1, 2, 3)}, set(), np.random.default_rng(13)))
     logger.abort()
     with pytest.raises(MonoMapError, match="colour"):
-        RerunMapLogger(rrd=tmp_path / "q.rrd", colour="rainbow")
+        RerunMapLogger(rrd=tmp_path / "q.rrd", options=StreamOptions(colour="rainbow"))
     assert not list(tmp_path.iterdir())

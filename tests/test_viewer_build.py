@@ -6,18 +6,19 @@ import numpy as np
 
 from mono_map.viz.codec import cell_indices, occupied_cells_from_bt
 from mono_map.viz.rerun_stream import RerunMapLogger
+from mono_map.viz.stream_options import StreamOptions
 from rrd_readback import map_cells_at, read_recording
 
 
 def test_short_build_writes_recording_with_expected_paths_and_frames(tiny_root, tmp_path):
     from mono_map.data.kitti import open_sequence
-    from mono_map.mapping.build import build_map
+    from mono_map.mapping.pipeline import build_map
     from mono_map.mapping.octree import write_tree_bt
 
     seq = open_sequence(tiny_root, "tiny")
     frames = list(range(min(4, len(seq))))
     rrd = tmp_path / "build.rrd"
-    logger = RerunMapLogger(rrd=rrd, resolution=0.2, image_size=seq.image_size)
+    logger = RerunMapLogger(rrd=rrd, options=StreamOptions(resolution=0.2, image_size=seq.image_size))
     result = build_map(seq, source="lidar-fov", frames=frames, observers=[logger], show_progress=False)
     assert rrd.is_file(), "build_map closes its observers: the recording must be complete"
 

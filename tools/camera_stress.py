@@ -51,7 +51,7 @@ def stress(model, frames, conditions=CONDITIONS) -> dict:
 
 def main(argv=None) -> int:
     from mono_map.depth.inference import default_checkpoint, load_checkpoint
-    from mono_map.depth.train import DataConfig
+    from mono_map.depth.train_config import DataConfig
     from mono_map.errors import MonoMapError
     from mono_map.eval.validation import validation_frames
 

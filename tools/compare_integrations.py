@@ -30,7 +30,8 @@ from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
 from mono_map.eval.map_metrics import calibration, compare_leaves, surface_precision  # noqa: E402
 from mono_map.frames import frames_tag, parse_frames  # noqa: E402
-from mono_map.mapping.build import build_map, load_predictor, make_builders, run_builders  # noqa: E402
+from mono_map.mapping.inputs import load_predictor  # noqa: E402
+from mono_map.mapping.pipeline import build_map, make_builders, run_builders  # noqa: E402
 from mono_map.mapping.jobs import MapJob  # noqa: E402
 from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.octree import load_tree, tree_leaves  # noqa: E402

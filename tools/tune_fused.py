@@ -25,7 +25,8 @@ from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
 from mono_map.eval.map_metrics import compare_leaves, surface_precision  # noqa: E402
 from mono_map.frames import parse_frames  # noqa: E402
-from mono_map.mapping.build import build_map, load_predictor, make_builders, run_builders  # noqa: E402
+from mono_map.mapping.inputs import load_predictor  # noqa: E402
+from mono_map.mapping.pipeline import build_map, make_builders, run_builders  # noqa: E402
 from mono_map.mapping.fused import FusedConfig  # noqa: E402
 from mono_map.mapping.octree import tree_leaves  # noqa: E402
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor  # noqa: E402

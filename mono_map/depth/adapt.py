@@ -306,7 +306,7 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
 def load_replay(seq, H: int, W: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     """``n`` frames spread over a synthetic training sequence: (images (n,H,W,3) uint8, LiDAR depth (n,H,W) m,
     0 = none) in the network's input size."""
-    from mono_map.depth.train import downsample_depth
+    from mono_map.depth.train_data import downsample_depth
     from mono_map.progress import progress
 
     idx = np.unique(np.linspace(0, len(seq) - 1, min(n, len(seq))).round().astype(int))

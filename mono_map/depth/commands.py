@@ -108,7 +108,8 @@ EVAL_FRAMES = FrameSelection("0:500:10", stop=500, step=10, up_to=True)  # eval-
 
 def run_train(args) -> int:
     from mono_map.depth.inference import default_precision
-    from mono_map.depth.train import dist_env, init_distributed, load_run_config, override, train
+    from mono_map.depth.train import dist_env, init_distributed, train
+    from mono_map.depth.train_config import load_run_config, override
 
     if args.data_root is not None:
         from mono_map.data.prepare import check_data_root

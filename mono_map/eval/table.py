@@ -117,7 +117,7 @@ def run_table(job: TableJob, pictures=None) -> Table:
     from mono_map.eval.map_metrics import calibration, compare_leaves, surface_precision, tree_summary
     from mono_map.frames import frames_tag
     from mono_map.io import staged_dir, write_json_atomic, write_text_atomic
-    from mono_map.mapping.build import load_predictor
+    from mono_map.mapping.inputs import load_predictor
     from mono_map.mapping.jobs import model_digest, read_map_sidecar
     from mono_map.mapping.octree import load_tree, tree_leaves
 

@@ -10,7 +10,8 @@ from functools import partial
 
 import numpy as np
 
-from mono_map.depth.train import DataConfig, frame_target, trainset_root
+from mono_map.depth.train_config import DataConfig
+from mono_map.depth.train_data import frame_target, trainset_root
 
 
 def validator_for(data: DataConfig, head, bins, beyond: bool):

@@ -9,30 +9,31 @@ origin; ``depth-gt`` back-projects the synthetic ground-truth ``depth_2`` throug
 (every pixel within the bin range, as keep 1.0: the camera's upper bound). Integration is the exact
 batched path of :mod:`mono_map.mapping.integrate`; with ``integrate="distribution"`` every valid
 pixel's whole depth distribution sets the updates along its ray instead
-(:mod:`mono_map.mapping.distribution`).
+(:mod:`mono_map.mapping.distribution`, one frame: :mod:`mono_map.mapping.distribution_frame`).
+
+Here one map's :class:`MapBuilder` (checked by :func:`make_builder`); a frame's shared image and
+predictions are :mod:`mono_map.mapping.inputs`, several maps in one pass :mod:`mono_map.mapping.pipeline`.
 """
 
 from __future__ import annotations
 
-import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from mono_map.config import OctoMapConfig
 from mono_map.depth.bins import DepthBins
 from mono_map.errors import MonoMapError
-from mono_map.mapping.distribution import (INTEGRATIONS, CellUpdates, DistributionConfig, check_distribution_config,
-                                           distribution_update, far_depth, narrow_bins, ray_distributions,
-                                           unconditional_mass)
+from mono_map.mapping.distribution import INTEGRATIONS, CellUpdates, DistributionConfig, check_distribution_config
+from mono_map.mapping.distribution_frame import distribution_frame
 from mono_map.mapping.fused import FusedConfig, SurfaceFusion, check_fused_config, due_surface_points, fuse_prediction
+from mono_map.mapping.inputs import FrameInputs, bin_edges, load_predictor, probs_steps
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.nested import KeepGroup, nested_frame
 from mono_map.mapping.octree import coord_to_key, key_to_coord, pack_keys, sorted_unique, unpack_keys
-from mono_map.mapping.points import camera_origin, pixel_points_to_world, pixels_to_world
+from mono_map.mapping.points import camera_origin, pixels_to_world
 from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
 from mono_map.mapping.select import DEFAULT_KEEP, check_keep, check_rank, confidence_score, select_pixels, valid_pixels
 
@@ -79,131 +80,6 @@ class BuildResult:
     stats: dict
     per_frame: list[dict]
     integrator: MapIntegrator
-
-
-def _close(observers: Iterable) -> None:
-    for obs in observers:
-        close = getattr(obs, "close", None)
-        if callable(close):
-            close()
-
-
-def load_predictor(model: str | None = None):
-    """The predictor a mono map is built with: ``"oracle"`` → the noisy ground-truth stand-in, else
-    ``DepthPredictor.load(model, fast=True, precision=default_precision())`` (None → shipped binary
-    checkpoint). The fast path computes the per-pixel statistics at the decoder's stride 4 and
-    up-samples them (~4x less CPU; eval-depth measures no accuracy loss, see docs/model.md); bf16 on
-    CPUs with AMX (~2x faster network)."""
-    if model == "oracle":
-        from mono_map.mapping.oracle import NoisyGroundTruthPredictor
-
-        return NoisyGroundTruthPredictor()
-    from mono_map.depth.inference import DepthPredictor, default_precision
-
-    return DepthPredictor.load(model, fast=True, precision=default_precision())
-
-
-def run_predictor(predictor, seq, i: int, image: np.ndarray, with_probs: bool = False, probs_step: int = 1):
-    """Predictors with ``predict_frame(seq, i, image)`` (e.g. the ground-truth oracle) get the frame;
-    others the image (``DepthPredictor.predict``). with_probs: also the bin probabilities, at every
-    ``probs_step``-th pixel row and column (K×H×W for step 1)."""
-    kw = {"with_probs": True, "probs_step": probs_step} if with_probs else {}
-    if hasattr(predictor, "predict_frame"):
-        return predictor.predict_frame(seq, i, image, **kw)
-    return predictor.predict(image, **kw)
-
-
-def bin_edges(predictor) -> np.ndarray:
-    """(K+1,) depth-bin edges (metres) of a predictor (DepthBins' defaults if it has none)."""
-    b = getattr(predictor, "bins", None) or DepthBins()
-    return DepthBins(b.num_bins, b.min_depth, b.max_depth).edges
-
-
-def distribution_frame(integrator: MapIntegrator, pred, valid: np.ndarray, K: np.ndarray, T_world_cam2: np.ndarray,
-                       edges: np.ndarray, dcfg: DistributionConfig, frame: int, free_only: bool = False):
-    """Integrate the valid pixels' distributions of one prediction (``probs`` K×H×W, conditional on a
-    surface within range as DepthPrediction's; optional ``p_beyond`` H×W, the probability of no surface
-    within range). Each pixel's unconditional bin mass is (1 − p_beyond) · probs and p_beyond is mass
-    beyond every cell; pixels with nothing within range (p_beyond > 1 − eps) are skipped. ``free_only``:
-    only the free-space (negative) updates are applied (the free half of a fused map).
-    Returns (FrameIntegration, number of rays)."""
-    if pred.probs is None:
-        raise MonoMapError(f"frame {frame}: the predictor gave no bin probabilities (--integrate distribution "
-                           f"needs a distribution head: binary, softmax, ordinal, gaussian or a dropout variant)")
-    probs = np.asarray(pred.probs)
-    s, ps = dcfg.ray_step, getattr(pred, "probs_step", 1)
-    if s % ps:
-        raise MonoMapError(f"frame {frame}: bin probabilities every {ps} pixels cannot serve rays every {s}")
-    h, w = -(-valid.shape[0] // ps), -(-valid.shape[1] // ps)
-    if probs.ndim != 3 or probs.shape[1:] != (h, w) or probs.shape[0] != len(edges) - 1:
-        raise MonoMapError(f"frame {frame}: bin probabilities are {probs.shape}, expected ({len(edges) - 1}, {h}, {w})")
-    pb_img = getattr(pred, "p_beyond", None)
-    if pb_img is not None:
-        valid = valid & ~(np.asarray(pb_img) > 1.0 - dcfg.eps)
-    sub = valid[::s, ::s]
-    v, u = np.nonzero(sub)
-    v, u = v * s, u * s
-    pb = np.zeros(len(v)) if pb_img is None else np.clip(np.asarray(pb_img, dtype=np.float64)[v, u], 0.0, 1.0)
-    grid = probs[:, ::s // ps, ::s // ps]          # the rays' pixels; a (H', W', K) array's view when ps == s
-    cl = np.moveaxis(grid, 0, -1)                  # (H', W', K)
-    if dcfg.bin_spread < 1.0:
-        p, edges = narrow_bins(unconditional_mass(cl[sub], pb, dcfg.temperature), edges, dcfg.bin_spread)
-        fd = far_depth(p, pb, edges, dcfg.eps)
-    elif cl.flags.c_contiguous:                    # the rays' rows read in place (no gathered copy)
-        p, fd = ray_distributions(cl.reshape(-1, cl.shape[-1]), pb, dcfg.temperature, edges, dcfg.eps,
-                                  rows=np.flatnonzero(sub))
-    else:
-        p, fd = ray_distributions(cl[sub], pb, dcfg.temperature, edges, dcfg.eps, overwrite=True)
-    upd = distribution_update(camera_origin(T_world_cam2), pixel_points_to_world(u, v, fd, K, T_world_cam2), fd,
-                              p, pb, edges, integrator.cfg.resolution, integrator.hit, integrator.miss,
-                              integrator.cfg.max_range, dcfg.min_update, dcfg.quantum, dcfg.snap_free)
-    if free_only:
-        upd = free_updates(upd)
-    return integrator.insert_updates(upd), int(len(v))
-
-
-def free_updates(upd: CellUpdates) -> CellUpdates:
-    """The free-space (negative) updates of a frame's :class:`CellUpdates` (views when already split by sign)."""
-    if upd.n_free is not None:
-        m = upd.n_free
-        return CellUpdates(upd.keys[:m], upd.dl[:m], upd.n_rays, upd.lo, upd.hi, m)
-    neg = upd.dl < 0
-    return CellUpdates(upd.keys[neg], upd.dl[neg], upd.n_rays, upd.lo, upd.hi, int(neg.sum()))
-
-
-class FrameInputs:
-    """One frame's image_2 and predictions, read and predicted once for every map built from the frame
-    (the keep sweep of ``eval --table`` and the demo's two monocular maps share one prediction pass).
-    ``probs_steps``: predictor id → the pixel step at which some map needs its bin probabilities
-    (distribution mode: the rays' ``ray_step``)."""
-
-    def __init__(self, seq, i: int, probs_steps: Mapping[int, int] | None = None):
-        self.seq, self.i, self.probs_steps = seq, i, dict(probs_steps or {})
-        self._image: np.ndarray | None = None
-        self._predictions: dict[int, object] = {}
-        self._shared: dict[tuple, object] = {}
-
-    def shared(self, key: tuple, make: Callable[[], object]):
-        """``make()`` the first time ``key`` is asked for in this frame, the same object afterwards (work
-        that several maps of the frame share, e.g. a :class:`~mono_map.mapping.nested.NestedFrame`)."""
-        if key not in self._shared:
-            self._shared[key] = make()
-        return self._shared[key]
-
-    def image(self) -> np.ndarray:
-        """H×W×3 uint8 RGB image_2 of the frame."""
-        if self._image is None:
-            self._image = self.seq.image(self.i)
-        return self._image
-
-    def prediction(self, predictor):
-        """``predictor``'s DepthPrediction of the frame (computed on the first call)."""
-        key = id(predictor)
-        if key not in self._predictions:
-            self._predictions[key] = run_predictor(predictor, self.seq, self.i, self.image(),
-                                                   with_probs=key in self.probs_steps,
-                                                   probs_step=self.probs_steps.get(key, 1))
-        return self._predictions[key]
 
 
 @dataclass
@@ -451,139 +327,3 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
                       depth_range=depth_range, observers=observers, stats_every=stats_every, method=method,
                       integrate=integrate, distribution=dcfg, n_frames=n_frames, rank=rank, fused=fcfg)
 
-
-def probs_steps(builders: Sequence[MapBuilder]) -> dict[int, int]:
-    """Predictor id → the pixel step at which the distribution-mode builders need its bin probabilities
-    (the greatest common divisor of their ray steps, so one prediction serves them all)."""
-    steps: dict[int, int] = {}
-    for b in builders:
-        if b.dist_mode:
-            k = id(b.predictor)
-            steps[k] = math.gcd(steps.get(k, 0), int(b.dcfg.ray_step))
-    return steps
-
-
-def share_ray_casts(builders: Sequence[MapBuilder]) -> None:
-    """Group the keep maps of one pass that see the same pixels (same predictor, ranking, stride, depth
-    range and cell size; batched integration, unlimited range) so that each frame is selected and ray-cast
-    once for all of them (:mod:`mono_map.mapping.nested`); a group needs two keeps or more. Maps outside a
-    group step on their own, as before."""
-    groups: dict[tuple, list[MapBuilder]] = {}
-    for b in builders:
-        b.group = None
-        cfg = b.integrator.cfg
-        if b.source == "mono" and not b.dist_mode and b.integrator.method == "batched" and cfg.max_range < 0:
-            key = ("keep-group", id(b.predictor), b.rank, b.stride, tuple(b.depth_range), float(cfg.resolution))
-            groups.setdefault(key, []).append(b)
-    for key, members in groups.items():
-        keeps = tuple(sorted({b.keep for b in members}))
-        if len(keeps) > 1:
-            for b in members:
-                b.group = KeepGroup(keeps, key)
-
-
-def prepare_inputs(seq, i: int, steps: Mapping[int, int], predictors: Sequence) -> FrameInputs:
-    """Frame ``i``'s shared work: image_2 read and every predictor run once (:class:`FrameInputs`)."""
-    inputs = FrameInputs(seq, i, steps)
-    for p in predictors:
-        inputs.prediction(p)
-    return inputs
-
-
-def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], show_progress: bool = True) -> None:
-    """Step every builder through ``frames`` in one pass: each frame's image is read and each predictor
-    runs once, whatever the number of maps built from them. With a depth predictor that work runs one
-    frame ahead in a second thread (the network releases the GIL, and so does the ray casting), so the
-    next frame is predicted while the maps integrate this one; a builder's per-frame ``frame_s`` is its own
-    work (selection, back-projection, integration; in a group of keep maps, :func:`share_ray_casts`, the
-    first map's includes the group's one selection and ray cast). The maps are the same as frame by frame.
-    Observers are closed at the end, also on error. Take each map with ``builder.result(frames)`` afterwards
-    (one octree in memory at a time)."""
-    steps = probs_steps(builders)
-    share_ray_casts(builders)
-    frames = list(frames)
-    predictors = list({id(b.predictor): b.predictor for b in builders if b.source == "mono"}.values())
-    iterator = frames
-    if show_progress:
-        from mono_map.progress import progress
-
-        sources = sorted({b.source for b in builders})
-        desc = f"build {'+'.join(sources)}" + (f" ×{len(builders)}" if len(builders) > 1 else "")
-        iterator = progress(frames, total=len(frames), desc=desc, unit="frame")
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mono-map-predict") if predictors else None
-    try:
-        ahead = pool.submit(prepare_inputs, seq, frames[0], steps, predictors) if pool and frames else None
-        for n, i in enumerate(iterator):
-            if pool is None:
-                inputs = FrameInputs(seq, i, steps)
-            else:
-                inputs = ahead.result()
-                if n + 1 < len(frames):
-                    ahead = pool.submit(prepare_inputs, seq, frames[n + 1], steps, predictors)
-            for b in builders:
-                b.step(i, inputs)
-    finally:
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
-        for b in builders:
-            _close(b.observers)
-
-
-def build_map(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, frames: Sequence[int] | None = None,
-              octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None,
-              model: str | None = None, depth_range: tuple[float, float] | None = None,
-              observers: Sequence[Callable] = (), stats_every: int = 100, method: str = "batched",
-              show_progress: bool = True, integrate: str = "keep",
-              distribution: DistributionConfig | None = None, rank: str = "entropy",
-              fused: FusedConfig | None = None) -> BuildResult:
-    """Integrate ``frames`` of ``seq`` into a new OctoMap.
-
-    source: "mono" (depth predictor, ``keep`` lowest-entropy fraction of valid pixels), "depth-gt"
-    (ground-truth depth_2, every pixel in the bin range), "lidar" or "lidar-fov" (``keep`` and the
-    predictor are ignored). integrate (mono only): "keep" (the paper: kept pixels' expected depths
-    as end points), "distribution" (every valid pixel's distribution, ``distribution`` settings;
-    ``keep`` is ignored) or "fused" (the distribution's free space + the surface fused across views,
-    ``fused`` settings: :mod:`mono_map.mapping.fused`). rank (keep maps): "entropy" (the paper's) or "metric" (entropy + log depth,
-    :func:`mono_map.mapping.select.confidence_score`). predictor: anything with
-    ``predict(image) -> DepthPrediction`` or ``predict_frame(seq, i, image)``; if None,
-    ``load_predictor(model)`` (None → the shipped checkpoint). depth_range: valid predicted
-    depths (metres), default the predictor's bin range (else DepthBins' 1–80 m).
-    observers: callables ``obs(FrameUpdate)``, closed (``close()``) at the end, also on error.
-    Leaf count / memory are measured every ``stats_every`` frames (a tree traversal) and carried
-    in between. Raises MonoMapError on bad input; nothing is written here.
-    """
-    return build_maps(seq, [dict(source=source, keep=keep, octomap=octomap, stride=stride, predictor=predictor,
-                                 model=model, depth_range=depth_range, observers=observers,
-                                 stats_every=stats_every, method=method, integrate=integrate,
-                                 distribution=distribution, rank=rank, fused=fused)],
-                      frames=frames, show_progress=show_progress)[0]
-
-
-def make_builders(seq, maps: Sequence[dict], n_frames: int) -> list[MapBuilder]:
-    """Checked builders of the maps ``maps`` (each :func:`build_map`'s keyword arguments without
-    ``frames``/``show_progress``); mono maps that name the same model (None: the shipped one) and pass
-    no predictor share one loaded predictor, so :func:`run_builders` predicts each frame once."""
-    loaded: dict[str | None, object] = {}
-    builders = []
-    for kw in maps:
-        kw = dict(kw)
-        if kw.get("source", "mono") == "mono" and kw.get("predictor") is None:
-            model = kw.pop("model", None)
-            if model not in loaded:
-                loaded[model] = load_predictor(model)
-            kw["predictor"] = loaded[model]
-        builders.append(make_builder(seq, n_frames=n_frames, **kw))
-    return builders
-
-
-def build_maps(seq, maps: Sequence[dict], *, frames: Sequence[int] | None = None,
-               show_progress: bool = True) -> list[BuildResult]:
-    """Build several maps of the same ``frames`` in one pass (:func:`make_builders`, :func:`run_builders`):
-    a keep sweep costs one prediction pass. Every map is checked before any frame is read; nothing is
-    written here."""
-    frames = list(range(len(seq))) if frames is None else list(frames)
-    if not frames:
-        raise MonoMapError("--frames: no frames selected")
-    builders = make_builders(seq, maps, len(frames))
-    run_builders(seq, builders, frames, show_progress)
-    return [b.result(frames) for b in builders]

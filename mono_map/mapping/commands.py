@@ -201,7 +201,8 @@ def run_build(args) -> int:
     from mono_map.errors import MonoMapError
     from mono_map.frames import first_frames, parse_frames
     from mono_map.io import check_output_file
-    from mono_map.mapping.build import SOURCES as BUILD_SOURCES, load_predictor
+    from mono_map.mapping.build import SOURCES as BUILD_SOURCES
+    from mono_map.mapping.inputs import load_predictor
     from mono_map.mapping.select import check_keep
 
     # every option first: nothing is opened, rendered or written before they all pass
@@ -249,10 +250,11 @@ def run_build(args) -> int:
     observers = []
     if rrd is not None or args.viewer:
         from mono_map.viz.rerun_stream import RerunMapLogger
+        from mono_map.viz.stream_options import StreamOptions
 
         def logger(path=None):
             return RerunMapLogger(rrd=path, spawn=args.viewer, reference_map=args.reference_map,
-                                  resolution=cfg.resolution, image_size=seq.image_size)
+                                  options=StreamOptions(resolution=cfg.resolution, image_size=seq.image_size))
         if rrd is None:
             observers.append(logger())
     bt, stats = build_and_write(job, seq, out_dir, name=args.name, observers=observers, predictor=predictor,

@@ -372,12 +372,12 @@ def build_and_write(job: MapJob, seq, out_dir: Path, name: str | None = None, ob
 def build_and_write_all(requests: list[MapRequest], seq, out_dir: Path, predictor=None,
                         show_progress: bool = True) -> list[tuple[Path, dict]]:
     """Build every requested map of the same frames in one pass over ``seq`` (each frame read and
-    predicted once: :func:`mono_map.mapping.build.build_maps`) and publish all maps' files together;
+    predicted once: :func:`mono_map.mapping.pipeline.build_maps`) and publish all maps' files together;
     if any build or any rename fails, nothing is published. predictor: None loads each mono job's model (once per
     model). Returns (bt path, stats) per request."""
     from mono_map.errors import MonoMapError
     from mono_map.io import atomic_outputs
-    from mono_map.mapping.build import make_builders, run_builders
+    from mono_map.mapping.pipeline import make_builders, run_builders
 
     frames = list(requests[0].job.frames)
     if any(list(r.job.frames) != frames for r in requests):

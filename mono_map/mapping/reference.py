@@ -1,7 +1,7 @@
 """Reference maps from the velodyne: full LiDAR and LiDAR-FOV (points inside image_2's view).
 
 These are the upper bound of the paper's Table IV ("LiDAR-FOV"). They are built by the same
-:func:`mono_map.mapping.build.build_map` (``source="lidar"`` / ``"lidar-fov"``); this module names
+:func:`mono_map.mapping.pipeline.build_map` (``source="lidar"`` / ``"lidar-fov"``); this module names
 the sources and gives the per-frame measurement.
 """
 

@@ -54,7 +54,7 @@ def _check_rrd(path: Path) -> None:
 
 
 def rerun_binary() -> str:
-    from mono_map.viz.rerun_stream import rerun_binary as find
+    from mono_map.viz.rerun_viewer import rerun_binary as find
 
     return find()
 
@@ -232,7 +232,7 @@ def run_view(args) -> int:
             rrd = Path(args.save)
             print(f"wrote {rrd}", file=sys.stderr)
     else:
-        from mono_map.viz.rerun_stream import log_bt_map
+        from mono_map.viz.rerun_cells import log_bt_map
 
         if args.save is None and args.screenshot is None:
             check_display()

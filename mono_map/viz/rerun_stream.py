@@ -2,8 +2,11 @@
 
 ``RerunMapLogger`` is a ``build_map`` observer: call it with each ``FrameUpdate`` (see
 ``mono_map.mapping.build``), then ``close()``. It only reads the update's attributes, so any
-object with the same fields works. ``log_bt_map`` logs a finished ``.bt``. The array work (cell
-keys, colours, image encoding) is in ``mono_map.viz.codec``; the layout in ``mono_map.viz.blueprint``.
+object with the same fields works. ``log_bt_map`` (``mono_map.viz.rerun_cells``) logs a finished
+``.bt``. The parts: the options (``mono_map.viz.stream_options``), the occupied cells per block
+(``mono_map.viz.block_map``), drawing cells (``mono_map.viz.rerun_cells``), the viewer process
+(``mono_map.viz.rerun_viewer``); the array work (cell keys, colours, image encoding) is in
+``mono_map.viz.codec``; the layout in ``mono_map.viz.blueprint``.
 
 What is logged (entity paths; all temporal data on the ``frame`` sequence timeline and on a
 ``time`` duration timeline taken from the sequence timestamps, seconds):
@@ -67,179 +70,69 @@ import numpy as np
 
 from mono_map.errors import MonoMapError
 from mono_map.io import atomic_path
-from mono_map.viz.codec import (DEFAULT_HEIGHT_RANGE, PROBABILITY_RANGE, cell_indices, colormap_lut, colourise,
-                                encode_jpeg_bgr, encode_jpeg_rgb, encode_png, group_by_block, height_range_of,
-                                heights, map_bounds, occupied_cells_from_bt, pack, sorted_difference,
-                                sorted_union, unpack)
+from mono_map.viz.block_map import BlockMap
+from mono_map.viz.codec import (DEFAULT_HEIGHT_RANGE, cell_indices, colormap_lut, encode_jpeg_bgr, encode_jpeg_rgb,
+                                encode_png, height_range_of, map_bounds, occupied_cells_from_bt, pack, unpack)
+from mono_map.viz.rerun_cells import block_path, cells_archetype
+from mono_map.viz.rerun_viewer import APP_ID, spawn_viewer
+from mono_map.viz.stream_options import StreamOptions, check_stream_options
 
-APP_ID = "mono-map"
 STAT_NAMES = ("frames_per_s", "memory_mb", "leaf_count", "mean_entropy", "kept_fraction", "n_points")
+
 IMAGE_VIEWS = ("world/camera/image", "frame/depth", "frame/entropy", "frame/kept_mask")
-CELL_STYLES = ("voxels", "points", "boxes")
-COLOURS = ("height", "probability")
-
-
-def cells_archetype(idx: np.ndarray, resolution: float, style: str = "voxels",
-                    height_range: tuple[float, float] = DEFAULT_HEIGHT_RANGE, origin: np.ndarray | None = None,
-                    probability: np.ndarray | None = None):
-    """rerun archetype drawing cells (integer indices (N,3)).
-
-    Colour: height = -y (metres) over ``height_range`` with Turbo, or, if ``probability`` (N,) is
-    given, occupancy probability over ``PROBABILITY_RANGE`` with viridis.
-    "voxels": ``VoxelGridMap`` (values colour-mapped by the viewer); voxel indices are stored
-    relative to ``origin`` (a block corner, cells) with the grid translated by origin·res, so they
-    are small numbers that the recording's LZ4 compresses well.
-    "points": ``Points3D`` of radius res/2; "boxes": solid ``Boxes3D`` (colours computed here).
-    """
-    import rerun as rr
-
-    if probability is None:
-        values, (lo, hi), cmap = heights(idx, resolution), height_range, "turbo"
-    else:
-        values, (lo, hi), cmap = np.asarray(probability, np.float32), PROBABILITY_RANGE, "viridis"
-    if style == "voxels":
-        o = np.zeros(3, np.int64) if origin is None else np.asarray(origin, np.int64)
-        return rr.VoxelGridMap(
-            (idx - o).astype(np.int32), voxel_size=[resolution] * 3,
-            values=np.clip(values, lo, hi),  # the viewer greys out-of-range values
-            value_range=[lo, hi], colormap=getattr(rr.components.Colormap, cmap.capitalize()),
-            translation=(o * resolution).astype(np.float64))
-    centres = ((idx.astype(np.float64) + 0.5) * resolution).astype(np.float32)
-    colours = colourise(values, lo, hi, cmap)
-    if style == "points":
-        return rr.Points3D(centres, colors=colours, radii=resolution / 2)
-    return rr.Boxes3D(centers=centres, half_sizes=[resolution / 2] * 3, colors=colours,
-                      fill_mode=rr.components.FillMode.Solid)
-
-
-def block_path(block_key: int) -> str:
-    """Entity path of the map block with packed block index ``block_key``."""
-    bx, by, bz = unpack(np.array([block_key]))[0].tolist()
-    return f"world/map/occupied/b{bx}_{by}_{bz}"
-
-
-def rerun_binary() -> str:
-    """Path of the rerun viewer/CLI binary bundled with rerun-sdk (the venv's bin may not be on PATH)."""
-    import shutil
-
-    try:
-        import rerun_cli
-
-        exe = Path(rerun_cli.__file__).parent / "rerun"
-        if exe.exists():
-            return str(exe)
-    except ImportError:  # pragma: no cover
-        pass
-    exe = shutil.which("rerun")
-    if exe is None:  # pragma: no cover
-        raise MonoMapError("--viewer: the rerun viewer binary was not found (pip install rerun-sdk)")
-    return exe
-
-
-def spawn_viewer(rec, port: int = 9876):
-    """Start a detached rerun viewer (or reuse one already listening on ``port``) for recording
-    ``rec``; return the sink that streams to it."""
-    import rerun as rr
-
-    try:
-        rr.spawn(port=port, connect=False, hide_welcome_screen=True, executable_path=rerun_binary(), recording=rec)
-    except RuntimeError as exc:
-        raise MonoMapError(f"--viewer: could not start the rerun viewer ({str(exc).splitlines()[0]})") from None
-    return rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy")
-
-
-# --------------------------------------------------------------------------- the logger
 
 
 class RerunMapLogger:
     """Observer that streams each ``FrameUpdate`` of a map build to rerun (see module doc).
 
-    Parameters (units: metres, seconds):
-      rrd: write a recording to this file (atomically on ``close()``); spawn: start a viewer and
-      stream to it live (both may be given); reference_map: a ``.bt`` (e.g. the LiDAR-FOV map)
-      logged once, static, in its own 3-D view; resolution: map cell size (must match the build);
-      block_cells: spatial block edge in cells; map_every: re-log dirty blocks every N frames;
-      cells: "voxels" | "points" | "boxes"; colour: "height" | "probability" (of the map cells;
-      the reference map is always coloured by height); height_range: (lo, hi) heights for the
-      colour scale (None: from the reference map if given, else DEFAULT_HEIGHT_RANGE); max_points:
-      cap on this frame's logged end points; trajectory_block: frames per trajectory segment
-      entity; entropy_max: top of the entropy colour scale (nats; default ln 64, the 64-bin
-      maximum); jpeg_quality: of image_2 and the entropy picture; aux_scale: size of the depth,
-      entropy and mask pictures relative to image_2 (they fill quarter-width panels; 0.5 quarters
-      their cost); image_size: (H, W) of image_2 for the camera frustum when updates carry no image
-      (LiDAR sources; default: twice the principal point); flush_s: seconds of rows batched per chunk.
+    rrd: write a recording to this file (atomically on ``close()``); spawn: start a viewer and stream to
+    it live (both may be given); reference_map: a ``.bt`` (e.g. the LiDAR-FOV map) logged once, static,
+    in its own 3-D view; options: how the build is drawn (:class:`StreamOptions`, checked here).
     """
 
-    def __init__(
-        self,
-        rrd: str | Path | None = None,
-        spawn: bool = False,
-        reference_map: str | Path | None = None,
-        resolution: float = 0.2,
-        *,
-        block_cells: int = 64,
-        map_every: int = 1,
-        cells: str = "voxels",
-        colour: str = "height",
-        height_range: tuple[float, float] | None = None,
-        max_points: int = 8000,
-        trajectory_block: int = 100,
-        entropy_max: float = math.log(64),
-        jpeg_quality: int = 85,
-        aux_scale: float = 0.5,
-        flush_s: float = 2.0,
-        image_size: tuple[int, int] | None = None,
-        recording_name: str | None = None,
-        blueprint: bool = True,
-    ) -> None:
+    def __init__(self, rrd: str | Path | None = None, spawn: bool = False, reference_map: str | Path | None = None,
+                 options: StreamOptions | None = None) -> None:
         import rerun as rr
 
+        o = options or StreamOptions()
         if rrd is None and not spawn:
             raise MonoMapError("viewer: give --rrd FILE and/or --viewer")
-        if cells not in CELL_STYLES:
-            raise MonoMapError(f"cells: {cells!r} is not one of {', '.join(CELL_STYLES)}")
-        if colour not in COLOURS:
-            raise MonoMapError(f"colour: {colour!r} is not one of {', '.join(COLOURS)}")
-        if not resolution > 0:
-            raise MonoMapError(f"resolution: must be > 0 (got {resolution})")
-        if block_cells < 1 or map_every < 1 or trajectory_block < 2:
-            raise MonoMapError("viewer: block_cells and map_every must be ≥ 1, trajectory_block ≥ 2")
-        if not 0 < aux_scale <= 1:
-            raise MonoMapError(f"aux_scale: must be in (0, 1] (got {aux_scale})")
+        check_stream_options(o)
+        self.options = o
         self.rr = rr
-        self.resolution = float(resolution)
-        self.block_cells = int(block_cells)
-        self.map_every = int(map_every)
-        self.cells = cells
-        self.colour = colour
-        self.max_points = int(max_points)
-        self.trajectory_block = int(trajectory_block)
-        self.entropy_max = float(entropy_max)
-        self.jpeg_quality = int(jpeg_quality)
-        self.aux_scale = float(aux_scale)
+        self.resolution = float(o.resolution)
+        self.block_cells = int(o.block_cells)
+        self.map_every = int(o.map_every)
+        self.cells = o.cells
+        self.colour = o.colour
+        self.max_points = int(o.max_points)
+        self.trajectory_block = int(o.trajectory_block)
+        self.entropy_max = float(o.entropy_max)
+        self.jpeg_quality = int(o.jpeg_quality)
+        self.aux_scale = float(o.aux_scale)
         self.rrd = Path(rrd) if rrd is not None else None
-        self.image_size = tuple(image_size) if image_size is not None else None
+        self.image_size = tuple(o.image_size) if o.image_size is not None else None
 
         ref_idx = None
         if reference_map is not None:
             ref_centres, ref_res = occupied_cells_from_bt(reference_map)
             ref_idx = cell_indices(ref_centres, ref_res)
             self._ref_res = ref_res
-        self.height_range = tuple(height_range) if height_range is not None else (
+        self.height_range = tuple(o.height_range) if o.height_range is not None else (
             height_range_of(ref_idx, self._ref_res) if ref_idx is not None else DEFAULT_HEIGHT_RANGE)
         self._magma_bgr = np.ascontiguousarray(colormap_lut("magma")[:, ::-1])
 
         # Batch rows for a few seconds before cutting chunks: every touched block is one row per frame,
         # and one chunk per row would cost more in chunk headers than the cells themselves.
-        batcher = rr.ChunkBatcherConfig(flush_tick=float(os.environ.get("MONO_MAP_RR_FLUSH_S", flush_s)),
+        batcher = rr.ChunkBatcherConfig(flush_tick=float(os.environ.get("MONO_MAP_RR_FLUSH_S", o.flush_s)),
                                         flush_num_bytes=32 << 20)
         self.rec = rr.RecordingStream(APP_ID, recording_id=None, batcher_config=batcher)
-        if recording_name:
-            self.rec.send_recording_name(recording_name)
+        if o.recording_name:
+            self.rec.send_recording_name(o.recording_name)
         bp = None
-        self._blueprint = blueprint
+        self._blueprint = o.blueprint
         self._has_reference = reference_map is not None
-        if blueprint:
+        if o.blueprint:
             from mono_map.viz.blueprint import default_blueprint
 
             bp = default_blueprint(reference=self._has_reference)
@@ -264,8 +157,7 @@ class RerunMapLogger:
         else:
             self.reference_cells = 0
 
-        self._blocks: dict[int, np.ndarray] = {}   # packed block index → sorted packed cell indices
-        self._block_probs: dict[int, np.ndarray] = {}   # colour="probability": float32 per cell of _blocks
+        self.map = BlockMap(self.block_cells, by_prob=o.colour == "probability")   # the occupied cells per block
         self.blocks_logged = 0      # block re-logs so far (size accounting for the benchmark)
         self.cells_logged = 0       # cells sent so far, re-sends included
         self.block_entities: set[int] = set()
@@ -274,7 +166,6 @@ class RerunMapLogger:
         self._traj_n = 0
         self._pinhole_logged = None
         self.frames = 0
-        self.map_cells = 0
         self._closed = False
 
     # ----------------------------------------------------------------- per frame
@@ -405,51 +296,28 @@ class RerunMapLogger:
         touched: set[int] = set()
         by_prob = self.colour == "probability"
         for add, rem, prob in pending:
-            for keys, adding in ((add, True), (rem, False)):
-                for bk, pos in group_by_block(unpack(keys), self.block_cells):
-                    kb = keys[pos]
-                    old = self._blocks.get(bk)
-                    old = old if old is not None else np.zeros(0, np.int64)
-                    new = sorted_union(old, kb) if adding else sorted_difference(old, kb)
-                    self.map_cells += len(new) - len(old)
-                    if by_prob:
-                        self._block_probs[bk] = carry_values(old, self._block_probs.get(bk), new)
-                    if len(new):
-                        self._blocks[bk] = new
-                    else:
-                        self._blocks.pop(bk, None)
-                        self._block_probs.pop(bk, None)
-                    touched.add(bk)
-            if prob is not None:
-                keys, values = prob
-                for bk, pos in group_by_block(unpack(keys), self.block_cells):
-                    cur = self._blocks.get(bk)
-                    if cur is None:
-                        continue  # no occupied cell in this block: nothing drawn changes colour
-                    i = np.minimum(np.searchsorted(cur, keys[pos]), len(cur) - 1)
-                    hit = cur[i] == keys[pos]
-                    if hit.any():
-                        self._block_probs[bk][i[hit]] = values[pos][hit]
-                        touched.add(bk)
+            touched |= self.map.apply(add, rem, prob)
         for bk in sorted(touched):
             path = block_path(bk)
-            keys = self._blocks.get(bk)
+            keys = self.map.blocks.get(bk)
             if keys is None:
                 self.rec.log(path, self.rr.Clear(recursive=False))
             else:
                 origin = unpack(np.array([bk]))[0] * self.block_cells
                 self.rec.log(path, cells_archetype(unpack(keys), self.resolution, self.cells, self.height_range,
-                                                   origin, self._block_probs.get(bk) if by_prob else None))
+                                                   origin, self.map.probs.get(bk) if by_prob else None))
                 self.cells_logged += len(keys)
         self.blocks_logged += len(touched)
         self.block_entities |= touched
 
+    @property
+    def map_cells(self) -> int:
+        """Occupied cells the logger tracks."""
+        return self.map.map_cells
+
     def occupied_cells(self) -> np.ndarray:
         """Current occupied cell centres (N,3) metres, as the logger tracks them (for checks)."""
-        if not self._blocks:
-            return np.zeros((0, 3))
-        keys = np.concatenate(list(self._blocks.values()))
-        return (unpack(keys).astype(np.float64) + 0.5) * self.resolution
+        return self.map.occupied_cells(self.resolution)
 
     # ----------------------------------------------------------------- end
 
@@ -466,7 +334,7 @@ class RerunMapLogger:
             return
         self._flush_map()
         self._closed = True
-        if self._blueprint and self._blocks:
+        if self._blueprint and self.map.blocks:
             # Re-send the layout with the 3-D eye fitted to the finished map (the first one could not know it).
             from mono_map.viz.blueprint import default_blueprint, eye_for_bounds
 
@@ -494,52 +362,3 @@ class RerunMapLogger:
         else:
             self.abort()
 
-
-def carry_values(old_keys: np.ndarray, old_values: np.ndarray | None, new_keys: np.ndarray) -> np.ndarray:
-    """Per-cell float32 values of sorted ``old_keys`` carried over to sorted ``new_keys`` (NaN where new)."""
-    out = np.full(len(new_keys), np.nan, dtype=np.float32)
-    if len(old_keys) and len(new_keys) and old_values is not None:
-        i = np.minimum(np.searchsorted(old_keys, new_keys), len(old_keys) - 1)
-        hit = old_keys[i] == new_keys
-        out[hit] = old_values[i[hit]]
-    return out
-
-
-# --------------------------------------------------------------------------- finished maps
-
-
-def log_bt_map(bt_path: str | Path, rrd: str | Path | None = None, spawn: bool = False,
-               cells: str = "voxels", block_cells: int = 64) -> dict:
-    """Log a finished OctoMap ``.bt``: occupied cells (finest resolution) coloured by height.
-
-    Static data, one entity per spatial block ``world/map/occupied/b<X>_<Y>_<Z>`` (as in the
-    stream), height range = the map's own 2-98th percentile. The ``.rrd`` is written atomically.
-    Returns counts for the caller.
-    """
-    import rerun as rr
-
-    from mono_map.viz.blueprint import default_blueprint, eye_for_bounds
-
-    if cells not in CELL_STYLES:
-        raise MonoMapError(f"--cells: {cells!r} is not one of {', '.join(CELL_STYLES)}")
-    if rrd is None and not spawn:
-        raise MonoMapError("view: nothing to do (no --save and no viewer)")
-    centres, res = occupied_cells_from_bt(bt_path)
-    idx = cell_indices(centres, res)
-    hrange = height_range_of(idx, res)
-    rec = rr.RecordingStream(APP_ID, recording_id=None)
-    rec.send_recording_name(Path(bt_path).name)
-    eye = eye_for_bounds(*map_bounds(centres)) if len(centres) else None
-    with contextlib.ExitStack() as files:
-        sinks = [rr.FileSink(str(files.enter_context(atomic_path(rrd))))] if rrd is not None else []
-        if spawn:
-            sinks.append(spawn_viewer(rec))
-        rec.set_sinks(*sinks, default_blueprint=default_blueprint(reference=False, frames=False, eye=eye))
-        rec.log("world", rr.ViewCoordinates.RDF, static=True)
-        blocks = group_by_block(idx, block_cells)
-        for bk, pos in blocks:
-            origin = unpack(np.array([bk]))[0] * block_cells
-            rec.log(block_path(bk), cells_archetype(idx[pos], res, cells, hrange, origin), static=True)
-        rec.flush(timeout_sec=60.0)
-        rec.disconnect()
-    return {"cells": int(len(idx)), "blocks": len(blocks), "resolution": res, "height_range": hrange}

@@ -17,7 +17,7 @@ import numpy as np
 from mono_map.data.depth_png import read_depth_png
 from mono_map.data.prepare import prepare_sequence
 from mono_map.frames import parse_frames
-from mono_map.mapping.build import load_predictor
+from mono_map.mapping.inputs import load_predictor
 from mono_map.mapping.select import select_pixels
 
 
