@@ -28,8 +28,8 @@ def lognormal_bin_probs(depth: np.ndarray, sigma: np.ndarray, bins: DepthBins,
     depth ≤ 0 get all mass beyond. ``beyond_only``: (None, the mass beyond) — the same values."""
     import torch
 
-    d = torch.as_tensor(np.asarray(depth, dtype=np.float32))
-    s = torch.as_tensor(np.asarray(sigma, dtype=np.float32)).clamp_min(1e-6)
+    d = torch.as_tensor(np.array(depth, dtype=np.float32))
+    s = torch.as_tensor(np.array(sigma, dtype=np.float32)).clamp_min(1e-6)
     mu = torch.log(d.clamp_min(1e-6))
     e = torch.as_tensor(bins.log_edges, dtype=torch.float32).view(-1, 1, 1)
     if beyond_only:
