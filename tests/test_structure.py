@@ -10,6 +10,8 @@
 * the package data (pyproject.toml) ships every data file of the package but the comparison
   heads' checkpoints: of mono_map/checkpoints/, only the default model;
 * no module in mono_map/ is longer than MAX_LINES lines but the ones listed in KNOWN_LONG.
+* no module but mono_map/mapping/strategies.py compares a map's ``source`` or ``integrate`` to a
+  string literal (the source and the integration are strategies resolved there once).
 
 Violations that other work is removing are listed below with their owner; the lists may only
 shrink: a new violation fails, and so does a listed one that is gone (delete its line then).
@@ -330,3 +332,50 @@ def test_the_length_check_counts_lines(tmp_path):
     (tmp_path / PACKAGE / "sub" / "long.py").write_text("x = 1\n" * 4)
     assert long_modules(tmp_path, 3) == {"mono_map/sub/long.py"}
     assert long_modules(tmp_path, 4) == set()
+
+
+STRATEGIES = "mono_map/mapping/strategies.py"   # the one module that compares the names
+STRATEGY_NAMES = ("source", "integrate")
+
+
+def is_strategy_name(node: ast.AST) -> bool:
+    """``source``, ``integrate``, or an attribute of that name (``args.source``, ``job.integrate``)."""
+    return (isinstance(node, ast.Name) and node.id in STRATEGY_NAMES
+            or isinstance(node, ast.Attribute) and node.attr in STRATEGY_NAMES)
+
+
+def is_string_literal(node: ast.AST) -> bool:
+    """A str constant, or a tuple / list / set of them."""
+    if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+        return bool(node.elts) and all(is_string_literal(e) for e in node.elts)
+    return isinstance(node, ast.Constant) and isinstance(node.value, str)
+
+
+def strategy_comparisons(paths) -> set[tuple[str, int]]:
+    """(file, line) of every comparison of a ``source`` / ``integrate`` name with a string literal."""
+    found = set()
+    for path in paths:
+        for node in ast.walk(ast.parse(Path(path).read_text())):
+            if isinstance(node, ast.Compare):
+                operands = [node.left, *node.comparators]
+                if any(map(is_strategy_name, operands)) and any(map(is_string_literal, operands)):
+                    found.add((Path(path).relative_to(REPO).as_posix(), node.lineno))
+    return found
+
+
+def test_source_and_integration_are_compared_only_in_the_strategies_module():
+    """A map's source and integration are strategy objects chosen once (mapping/strategies.py); every other
+    module asks them (``source.camera``, ``integration.distributional``) instead of comparing names."""
+    found = {(f, line) for f, line in strategy_comparisons(sorted((REPO / PACKAGE).rglob("*.py")))
+             if f != STRATEGIES}
+    assert not found, "source/integrate compared to a string (ask mono_map/mapping/strategies.py): " + ", ".join(
+        f"{f}:{line}" for f, line in sorted(found))
+    assert (REPO / STRATEGIES).is_file(), f"{STRATEGIES} is gone: update STRATEGIES"
+
+
+def test_the_strategy_check_finds_what_it_guards(tmp_path, monkeypatch):
+    (tmp_path / "m.py").write_text('a = source == "mono"\nb = job.integrate in ("fused", "distribution")\n'
+                                   'c = "lidar" != args.source\nd = source == other\ne = reference == "lidar"\n'
+                                   'f = kind.camera\n')
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    assert strategy_comparisons([tmp_path / "m.py"]) == {("m.py", 1), ("m.py", 2), ("m.py", 3)}

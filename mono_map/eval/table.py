@@ -23,6 +23,7 @@ from mono_map.io import prepare_output_dir
 from mono_map.mapping.distribution import DistributionConfig
 from mono_map.mapping.fused import FusedConfig
 from mono_map.mapping.jobs import MapJob, check_reach
+from mono_map.mapping.strategies import source_of
 from mono_map.paths import sequence_output_dir
 
 CALIBRATED = ("mono (keep 1.0)", "mono keep 0.8", "mono, distribution")   # rows with a .ot and an ECE
@@ -138,7 +139,7 @@ def run_table(job: TableJob, pictures=None) -> Table:
     calibrated = CALIBRATED if extended else ()
 
     def job_of(source, keep=1.0, stride=1, model=None, integrate="keep"):
-        mono = source == "mono"
+        mono = source_of(source).predicted
         return MapJob.of(seq, source, frames, keep=keep, integrate=integrate, distribution=dcfg, octomap=cfg,
                          stride=stride, model=model, digest=digest if mono else None, fused=job.fused)
 

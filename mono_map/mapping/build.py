@@ -26,7 +26,7 @@ import numpy as np
 from mono_map.config import OctoMapConfig
 from mono_map.depth.bins import DepthBins
 from mono_map.errors import MonoMapError
-from mono_map.mapping.distribution import INTEGRATIONS, CellUpdates, DistributionConfig, check_distribution_config
+from mono_map.mapping.distribution import CellUpdates, DistributionConfig, check_distribution_config
 from mono_map.mapping.distribution_frame import distribution_frame
 from mono_map.mapping.fused import FusedConfig, SurfaceFusion, check_fused_config, due_surface_points, fuse_prediction
 from mono_map.mapping.inputs import FrameInputs, bin_edges, load_predictor, probs_steps
@@ -34,10 +34,10 @@ from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.nested import KeepGroup, nested_frame
 from mono_map.mapping.octree import coord_to_key, key_to_coord, pack_keys, sorted_unique, unpack_keys
 from mono_map.mapping.points import camera_origin, pixels_to_world
-from mono_map.mapping.reference import LIDAR_SOURCES, lidar_measurement
+from mono_map.mapping.reference import lidar_measurement
 from mono_map.mapping.select import DEFAULT_KEEP, check_keep, check_rank, confidence_score, select_pixels, valid_pixels
+from mono_map.mapping.strategies import integration_of, source_of
 
-SOURCES = ("mono", "depth-gt") + LIDAR_SOURCES
 
 
 @dataclass
@@ -109,15 +109,16 @@ class MapBuilder:
                  method: str, integrate: str, distribution: DistributionConfig, n_frames: int,
                  rank: str = "entropy", fused: FusedConfig | None = None):
         self.seq, self.source, self.keep, self.stride, self.rank = seq, source, keep, stride, rank
+        self.kind, self.integration = source_of(source), integration_of(integrate, source)
         self.predictor, self.depth_range, self.observers = predictor, depth_range, list(observers)
         self.stats_every, self.n_frames, self.dcfg = stats_every, n_frames, distribution
         self.integrate = integrate
-        self.dist_mode = source == "mono" and integrate in ("distribution", "fused")
+        self.dist_mode = self.integration.distributional
         self.integrator = MapIntegrator(octomap, method=method)
         self.fcfg = fused or FusedConfig()
         # fused: the surface's TSDF beside the free-space half; surface keys as last extracted (streaming)
         self.fusion = (SurfaceFusion(self.fcfg, octomap.resolution)
-                       if source == "mono" and integrate == "fused" else None)
+                       if self.integration.fused else None)
         self.surface_points = 0                    # fused: surface hits inserted (cells, summed over frames)
         self.group: KeepGroup | None = None   # keep maps whose frames share one ray cast (share_ray_casts)
         self.edges = bin_edges(predictor) if self.dist_mode else None
@@ -134,9 +135,9 @@ class MapBuilder:
         if inputs is None:
             inputs = FrameInputs(self.seq, i, probs_steps([self]))
         T_world_cam2 = self.seq.T_world_cam2(i)
-        if self.source == "mono":
+        if self.kind.predicted:
             m = self.mono_measurement(i, T_world_cam2, inputs)
-        elif self.source == "depth-gt":
+        elif self.kind.ground_truth:
             m = self.depth_gt_measurement(i, T_world_cam2, inputs)
         else:
             m = self.lidar_measurement(i)
@@ -269,15 +270,15 @@ class MapBuilder:
         final = self.integrator.stats()
         wall = time.perf_counter() - self.t_start
         stats = {
-            "source": self.source, "keep": self.keep if self.source == "mono" and not dist else None,
-            "integrate": integrate if self.source == "mono" else None,
+            "source": self.source, "keep": self.keep if self.kind.predicted and not dist else None,
+            "integrate": integrate if self.kind.predicted else None,
             "eps": dcfg.eps if dist else None, "temperature": dcfg.temperature if dist else None,
             "fused": dict(self.fcfg.__dict__) if self.fusion is not None else None,
             "sequence": getattr(self.seq, "name", None),
             "frames": [int(frames[0]), int(frames[-1]) + 1], "n_frames": len(frames), "stride": self.stride,
             "resolution": cfg.resolution, "prob_hit": cfg.prob_hit, "prob_miss": cfg.prob_miss,
             "clamp_min": cfg.clamp_min, "clamp_max": cfg.clamp_max, "max_range": cfg.max_range,
-            "depth_range": list(self.depth_range) if self.source in ("mono", "depth-gt") else None,
+            "depth_range": list(self.depth_range) if self.kind.camera else None,
             "points_valid": int(self.points_valid), "points_kept": int(self.points_kept),
             "rays_cast": int(self.rays_cast),
             "leaf_count": final["leaf_count"], "tree_nodes": final["tree_nodes"],
@@ -302,23 +303,20 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
                  fused: FusedConfig | None = None) -> MapBuilder:
     """A checked :class:`MapBuilder` for ``n_frames`` frames (arguments as :func:`build_map`'s).
     Raises MonoMapError on bad input."""
-    if source not in SOURCES:
-        raise MonoMapError(f"--source: unknown source {source!r} (choose from {', '.join(SOURCES)})")
+    kind = source_of(source)
     cfg = octomap or OctoMapConfig()
     stride = int(stride)
     if stride < 1:
         raise MonoMapError(f"--stride: must be a positive integer, got {stride}")
-    if integrate not in INTEGRATIONS:
-        raise MonoMapError(f"--integrate: unknown integration {integrate!r} (choose from {', '.join(INTEGRATIONS)})")
-    dist_mode = source == "mono" and integrate in ("distribution", "fused")
+    dist_mode = integration_of(integrate, kind).distributional
     dcfg = check_distribution_config(distribution or DistributionConfig())
     fcfg = check_fused_config(fused or FusedConfig())
     if dist_mode and method != "batched":
         raise MonoMapError(f"--integrate {integrate}: needs the batched integration method")
-    if source == "mono" and not dist_mode:
+    if kind.predicted and not dist_mode:
         keep = check_keep(keep)
     rank = check_rank(rank)
-    if source == "mono" and predictor is None:
+    if kind.predicted and predictor is None:
         predictor = load_predictor(model)
     if depth_range is None:
         bins = getattr(predictor, "bins", None) or DepthBins()

@@ -10,6 +10,7 @@ from mono_map.io import prepare_output_dir
 from mono_map.mapping.jobs import (RRD_MIN_FREE, MapJob, build_and_write, check_memory, check_reach,
                                    checkpoint_path, model_digest, read_map_sidecar, reusable)
 from mono_map.mapping.select import DEFAULT_KEEP
+from mono_map.mapping.strategies import INTEGRATIONS, LIDAR_SOURCES
 from mono_map.paths import sequence_output_dir
 
 
@@ -47,7 +48,7 @@ def _add_integration_args(p: argparse.ArgumentParser) -> None:
 
     d = DistributionConfig()
     g = p.add_argument_group("integration of monocular depth")
-    g.add_argument("--integrate", default="keep", choices=("keep", "distribution", "fused"),
+    g.add_argument("--integrate", default="keep", choices=INTEGRATIONS,
                    help="keep: the paper's cut, the --keep lowest-entropy pixels' expected depths as end points "
                         "(default); distribution: every valid pixel's whole depth distribution sets the expected "
                         "OctoMap update of each cell along its ray (--keep ignored); fused: the distribution's free "
@@ -201,17 +202,16 @@ def run_build(args) -> int:
     from mono_map.errors import MonoMapError
     from mono_map.frames import first_frames, parse_frames
     from mono_map.io import check_output_file
-    from mono_map.mapping.build import SOURCES as BUILD_SOURCES
     from mono_map.mapping.inputs import load_predictor
     from mono_map.mapping.select import check_keep
+    from mono_map.mapping.strategies import integration_of, source_of
 
     # every option first: nothing is opened, rendered or written before they all pass
-    if args.source not in BUILD_SOURCES:
-        raise MonoMapError(f"--source: unknown source {args.source!r} (choose from {', '.join(BUILD_SOURCES)})")
+    source = source_of(args.source)
     dcfg = distribution_config(args)
     fcfg = fused_config(args)
-    if args.source == "mono":
-        if args.integrate == "keep":
+    if source.predicted:
+        if integration_of(args.integrate, source).end_points:
             check_keep(args.keep)
         checkpoint_path(args.model)
     if args.stride < 1:
@@ -228,12 +228,12 @@ def run_build(args) -> int:
         raise MonoMapError(f"--reference-map: {args.reference_map}: no such file")
     check_data_root(args.data_root)
     out_dir = prepare_output_dir(sequence_output_dir(args.out, args.seq))
-    predictor = load_predictor(args.model) if args.source == "mono" else None  # a bad checkpoint fails here
-    digest = model_digest(args.model) if args.source == "mono" else None
+    predictor = load_predictor(args.model) if source.predicted else None  # a bad checkpoint fails here
+    digest = model_digest(args.model) if source.predicted else None
     # then the data
     seq = prepare_sequence(args.data_root, args.seq, selection)
     frames = selection.resolve(len(seq))
-    if args.source == "depth-gt" and seq.depth(frames[0]) is None:
+    if source.ground_truth and seq.depth(frames[0]) is None:
         raise MonoMapError(f"--source depth-gt: {seq.depth_dir} has no ground-truth depth for frame "
                            f"{frames[0]} (a synthetic sequence has it)")
     job = MapJob.of(seq, args.source, frames, keep=args.keep, integrate=args.integrate, distribution=dcfg,
@@ -241,8 +241,8 @@ def run_build(args) -> int:
     check_reach(seq, job)
     check_memory(seq, job)
     how = ""
-    if args.source == "mono":
-        how = (f", keep {args.keep:g}" if args.integrate == "keep" else
+    if source.predicted:
+        how = (f", keep {args.keep:g}" if job.integration.end_points else
                f", {args.integrate} integration (eps {dcfg.eps:g}, temperature {dcfg.temperature:g})")
     print(f"mono-map build: sequence {args.seq}, {selection.describe(frames)}, source {args.source}{how}, "
           f"{cfg.resolution:g} m cells", flush=True)
@@ -328,7 +328,7 @@ def check_eval_options(args):
         raise MonoMapError(f"--map: {args.map}: map file not found")
     if args.table:
         parse_keeps(args.keeps)
-    if args.reference not in ("lidar", "lidar-fov") and not Path(args.reference).is_file():
+    if args.reference not in LIDAR_SOURCES and not Path(args.reference).is_file():
         raise MonoMapError(f"--reference: {args.reference} is neither lidar, lidar-fov nor an existing .bt file")
     return cfg, dcfg, selection
 
@@ -344,7 +344,7 @@ def default_map_path(args, cfg, dcfg, selection) -> Path:
     job = MapJob.of(seq, "mono", frames, keep=args.keep, integrate=args.integrate, distribution=dcfg, octomap=cfg,
                     stride=args.stride, model=args.model, fused=fused_config(args))
     path = job.path(sequence_output_dir(args.out, args.seq))
-    how = f"--keep {args.keep:g}" if args.integrate == "keep" else f"--integrate {args.integrate}"
+    how = f"--keep {args.keep:g}" if job.integration.end_points else f"--integrate {args.integrate}"
     if not path.is_file():
         raise MonoMapError(f"--map: none given, and {path} does not exist yet "
                            f"(build it: mono-map build --seq {args.seq} {how}, or pass --map)")

@@ -35,7 +35,6 @@ from mono_map.errors import MonoMapError
 from mono_map.mapping.octree import TREE_MAX_VAL, coord_to_key, key_bounds, key_in_range, key_to_coord
 from mono_map.mapping.raycast import KeyBox, cut_at_range, norm_f32
 
-INTEGRATIONS = ("keep", "distribution", "fused")
 _SUM_TOL = 1e-3       # probs + p_beyond may exceed 1 by float32 rounding, not more
 _DENSE_MAX_CELLS = 300_000_000   # larger frame boxes combine (index, update) pairs by sorting instead
 

@@ -23,6 +23,7 @@ from mono_map.config import OctoMapConfig
 from mono_map.frames import frames_tag
 from mono_map.mapping.distribution import DistributionConfig
 from mono_map.mapping.fused import FusedConfig
+from mono_map.mapping.strategies import Integration, Source, integration_of, source_of
 
 # rerun's file sink blocks for good on a full disk: a recording stops while this much is still free
 RRD_MIN_FREE = 32 << 20
@@ -134,7 +135,7 @@ class MapJob:
            fused: FusedConfig | None = None) -> "MapJob":
         """The job of building ``frames`` of the open sequence ``seq`` (its root, name and synthetic
         marker are read from it); ``digest`` defaults to :func:`model_digest` of ``model`` (mono only)."""
-        mono = source == "mono"
+        mono = source_of(source).predicted
         precision = None
         if mono and model != "oracle":
             from mono_map.depth.inference import default_precision
@@ -149,22 +150,32 @@ class MapJob:
                    fused=fused or FusedConfig())
 
     @property
+    def kind(self) -> Source:
+        """The source as a strategy (:mod:`mono_map.mapping.strategies`)."""
+        return source_of(self.source)
+
+    @property
+    def integration(self) -> Integration:
+        """The integration as this job's source uses it (end points unless a mono map's distributions)."""
+        return integration_of(self.integrate, self.source)
+
+    @property
     def mono(self) -> bool:
-        return self.source == "mono"
+        return self.kind.predicted
 
     @property
     def distributional(self) -> bool:
         """A mono map integrating whole distributions (``--integrate distribution`` or ``fused``; keep ignored)."""
-        return self.mono and self.integrate in ("distribution", "fused")
+        return self.integration.distributional
 
     @property
     def is_fused(self) -> bool:
         """A mono map with ``--integrate fused`` (the distribution's free space + the fused surface)."""
-        return self.mono and self.integrate == "fused"
+        return self.integration.fused
 
     def key(self) -> dict:
         """Everything that determines the map, as JSON: stored in its .json, compared before reuse."""
-        camera = self.source in ("mono", "depth-gt")
+        camera = self.kind.camera
         integration = {"method": "batched", "mode": self.integrate if self.mono else None,
                        "distribution": dataclasses.asdict(self.distribution) if self.distributional else None}
         if self.is_fused:                 # only fused maps carry the key: the other maps' keys stay as they were
@@ -198,7 +209,7 @@ class MapJob:
             parts = [self.source if not self.mono else f"mono-keep{self.keep:g}"]
         if self.mono and self.model:
             parts.append("model-" + Path(str(self.model)).stem)
-        if self.source in ("mono", "depth-gt") and self.stride != 1:
+        if self.kind.camera and self.stride != 1:
             parts.append(f"stride{self.stride}")
         cfg, d = self.octomap, OctoMapConfig()
         parts.append(f"res{cfg.resolution:g}")
@@ -295,7 +306,7 @@ def estimate_frame_bytes(seq, i: int, source: str, cfg, stride: int, keep: float
     Camera sources (mono, depth-gt) are estimated from their pixel count."""
     import numpy as np
 
-    if source in ("mono", "depth-gt"):
+    if source_of(source).camera:
         h, w = seq.image_size
         pixels = (-(-h // stride)) * (-(-w // stride)) * keep
         return MONO_BYTES_AT_02 * (0.2 / cfg.resolution) ** 2.5 * pixels / (376 * 1241 * 0.8)
@@ -334,7 +345,7 @@ def check_memory(seq, job: MapJob) -> None:
     from mono_map.errors import MonoMapError
 
     keep, stride, cfg = job.keep, job.stride, job.octomap
-    if job.source == "depth-gt":
+    if job.kind.ground_truth:
         keep = 1.0
     elif job.distributional:
         keep, stride = 1.0, stride * job.distribution.ray_step

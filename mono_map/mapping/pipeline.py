@@ -36,7 +36,7 @@ def share_ray_casts(builders: Sequence[MapBuilder]) -> None:
     for b in builders:
         b.group = None
         cfg = b.integrator.cfg
-        if b.source == "mono" and not b.dist_mode and b.integrator.method == "batched" and cfg.max_range < 0:
+        if b.kind.predicted and not b.dist_mode and b.integrator.method == "batched" and cfg.max_range < 0:
             key = ("keep-group", id(b.predictor), b.rank, b.stride, tuple(b.depth_range), float(cfg.resolution))
             groups.setdefault(key, []).append(b)
     for key, members in groups.items():
@@ -58,7 +58,7 @@ def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], sho
     steps = probs_steps(builders)
     share_ray_casts(builders)
     frames = list(frames)
-    predictors = list({id(b.predictor): b.predictor for b in builders if b.source == "mono"}.values())
+    predictors = list({id(b.predictor): b.predictor for b in builders if b.kind.predicted}.values())
     iterator = frames
     if show_progress:
         from mono_map.progress import progress
