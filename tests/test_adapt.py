@@ -11,21 +11,16 @@ import torch
 from mono_map.cli import main as cli_main
 from mono_map.depth import photometric as ph
 from mono_map.depth.adapt import AdaptConfig, adapt, choose_sources, held_out
-from mono_map.depth.inference import load_checkpoint, save_checkpoint
-from mono_map.depth.networks import DepthNet, named_config
+from mono_map.depth.inference import load_checkpoint
 from mono_map.errors import MonoMapError
 from mono_map.frames import parse_frames
+from tiny_net import write_tiny_checkpoint
 
-TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),
-            num_bins=16, input_height=64, input_width=192, beyond=True)
 
 
 @pytest.fixture
 def tiny_ckpt(tmp_path):
-    torch.manual_seed(0)
-    path = tmp_path / "tinynet.pt"
-    save_checkpoint(path, DepthNet(named_config("small", **TINY)), {"step": 0})
-    return path
+    return write_tiny_checkpoint(tmp_path / "tinynet.pt", beyond=True)
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +145,7 @@ def test_bad_inputs_one_line(tiny_root, tiny_ckpt, tmp_path, capsys):
     base = ["adapt", "--seq", "tiny", "--data-root", str(tiny_root), "--out", str(tmp_path / "o"), "--steps", "1"]
     torch.manual_seed(0)
     gauss = tmp_path / "gauss.pt"
-    save_checkpoint(gauss, DepthNet(named_config("small", **{**TINY, "head": "gaussian"})), {})
+    write_tiny_checkpoint(gauss, {}, beyond=True, head="gaussian")
     no_poses = tmp_path / "noposes"
     shutil.copytree(tiny_root, no_poses)
     (no_poses / "poses" / "tiny.txt").unlink()

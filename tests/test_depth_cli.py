@@ -8,20 +8,14 @@ import torch
 
 from mono_map.cli import main
 from mono_map.data.depth_png import read_depth_png
-from mono_map.depth.inference import save_checkpoint
-from mono_map.depth.networks import DepthNet, named_config
+from tiny_net import write_tiny_checkpoint
 
 
-TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),
-            num_bins=16, input_height=64, input_width=192)
 
 
 @pytest.fixture
 def tiny_ckpt(tmp_path):
-    torch.manual_seed(0)
-    path = tmp_path / "tiny.pt"
-    save_checkpoint(path, DepthNet(named_config("small", **TINY)), {"step": 0})
-    return path
+    return write_tiny_checkpoint(tmp_path / "tiny.pt")
 
 
 def test_predict_image_folder(tmp_path, tiny_ckpt):
@@ -58,8 +52,8 @@ def test_eval_depth_rows_are_named_by_their_training_runs(tmp_path, kitti_real):
     """Two runs of one head (e.g. the bin-count ablation) are two rows named by their runs, in one table."""
     torch.manual_seed(0)
     a, b = tmp_path / "a.pt", tmp_path / "b.pt"
-    save_checkpoint(a, DepthNet(named_config("small", **TINY)), {"name": "v2-binary"})
-    save_checkpoint(b, DepthNet(named_config("small", **{**TINY, "num_bins": 8})), {"name": "v2-binary-k8"})
+    write_tiny_checkpoint(a, {"name": "v2-binary"})
+    write_tiny_checkpoint(b, {"name": "v2-binary-k8"}, num_bins=8)
     out = tmp_path / "ev"
     assert main(["eval-depth", "--kitti-object", str(kitti_real / "object" / "training"), "--model", str(a),
                  "--model", str(b), "--out", str(out), "--threads", "1"]) == 0

@@ -3,21 +3,15 @@
 import json
 
 import numpy as np
-import torch
 
 from mono_map.cli import main as cli_main
-from mono_map.depth.inference import save_checkpoint
-from mono_map.depth.networks import DepthNet, named_config
 from tool_loader import load_tool
+from tiny_net import write_tiny_checkpoint
 
-TINY = dict(widths=(8, 8, 8, 8), stem_width=8, spp_width=4, decoder_widths=(8, 8, 8),
-            num_bins=16, input_height=64, input_width=192, beyond=True)
 
 
 def test_object_rows_equal_eval_depth_and_pool(tmp_path, kitti_real):
-    torch.manual_seed(0)
-    ckpt = tmp_path / "tiny.pt"
-    save_checkpoint(ckpt, DepthNet(named_config("small", **TINY)), {"step": 0})
+    ckpt = write_tiny_checkpoint(tmp_path / "tiny.pt", beyond=True)
     tool = load_tool("eval_real")
     out = tmp_path / "real"
     assert tool.main(["--model", str(ckpt), "--real-root", str(kitti_real), "--only", "object/training",

@@ -19,6 +19,7 @@ from mono_map.data import kitti_raw
 from mono_map.data.kitti import KittiRawSequence, open_sequence
 from mono_map.data.kitti_raw_writer import RawRig, synthetic_drive_name, write_raw_drive
 from mono_map.errors import MonoMapError
+from tiny_net import write_tiny_checkpoint
 
 DRIVE = synthetic_drive_name("tiny")    # 2000_01_01_drive_tiny_sync
 DATE = DRIVE[:10]
@@ -172,17 +173,7 @@ def test_maps_cell_for_cell(exact_root, source):
 @pytest.fixture(scope="module")
 def ckpt(tmp_path_factory):
     """An untrained tiny network: fast, and enough to run the commands."""
-    import torch
-
-    from mono_map.depth.inference import save_checkpoint
-    from mono_map.depth.networks import DepthNet, named_config
-
-    torch.manual_seed(0)
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
-    save_checkpoint(path, DepthNet(named_config("small", widths=(8, 8, 8, 8), stem_width=8, spp_width=4,
-                                                decoder_widths=(8, 8, 8), num_bins=16, input_height=64,
-                                                input_width=192)), {"step": 0})
-    return path
+    return write_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
 
 
 def test_every_command_on_a_raw_drive(raw_root, tmp_path, capsys, ckpt, monkeypatch):
