@@ -114,18 +114,6 @@ def held_out(targets: list[int]) -> list[int]:
 
 
 # ------------------------------------------------------------------ data
-def resize_to_input(image: np.ndarray, H: int, W: int) -> tuple[np.ndarray, tuple[int, int]]:
-    """RGB uint8 -> (H×W×3 uint8 fitted with the aspect kept and edge-padded, as inference does; (fh, fw))."""
-    import cv2
-
-    from mono_map.depth.inference import fit_size
-
-    h, w = image.shape[:2]
-    fh, fw = fit_size(h, w, H, W)
-    r = cv2.resize(image, (fw, fh), interpolation=cv2.INTER_AREA) if (fh, fw) != (h, w) else image
-    return np.pad(r, ((0, H - fh), (0, W - fw), (0, 0)), mode="edge"), (fh, fw)
-
-
 @dataclass
 class SequenceFrames:
     """The frames of an adaptation in the network's input size: images (N,H,W,3) uint8, K (3,3) of these
@@ -140,6 +128,7 @@ class SequenceFrames:
 
 def load_frames(seq, indices: list[int], H: int, W: int, desc: str = "adapt: read") -> SequenceFrames:
     """Read image_2 and T_world_cam2 of ``indices`` of a sequence (any layout the reader opens)."""
+    from mono_map.depth.inference import resize_to_input
     from mono_map.progress import progress
 
     imgs, content = [], None
@@ -306,6 +295,7 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
 def load_replay(seq, H: int, W: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     """``n`` frames spread over a synthetic training sequence: (images (n,H,W,3) uint8, LiDAR depth (n,H,W) m,
     0 = none) in the network's input size."""
+    from mono_map.depth.inference import resize_to_input
     from mono_map.depth.train_data import downsample_depth
     from mono_map.progress import progress
 

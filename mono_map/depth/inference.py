@@ -119,6 +119,17 @@ def fit_size(h: int, w: int, max_h: int, max_w: int) -> tuple[int, int]:
     return min(max_h, max(1, round(h * s))), min(max_w, max(1, round(w * s)))
 
 
+def resize_to_input(image: np.ndarray, H: int, W: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """RGB uint8 -> the network's H×W input: resized with the aspect kept (:func:`fit_size`, area
+    interpolation) and edge-padded right and below; also the content size (fh, fw)."""
+    import cv2
+
+    h, w = image.shape[:2]
+    fh, fw = fit_size(h, w, H, W)
+    r = cv2.resize(image, (fw, fh), interpolation=cv2.INTER_AREA) if (fh, fw) != (h, w) else image
+    return np.pad(r, ((0, H - fh), (0, W - fw), (0, 0)), mode="edge"), (fh, fw)
+
+
 def save_checkpoint(path: str | os.PathLike, model: DepthNet, training: dict | None = None,
                     optimizer_state: dict | None = None) -> None:
     """Write config + bins + weights (+ training metadata / optimizer state) atomically."""
@@ -222,8 +233,6 @@ class DepthPredictor:
         return self.cfg.head
 
     def _prepare(self, images: list[np.ndarray]) -> tuple[torch.Tensor, tuple[int, int], tuple[int, int]]:
-        import cv2
-
         h, w = images[0].shape[:2]
         for im in images:
             if im.ndim != 3 or im.shape[2] != 3 or im.dtype != np.uint8:
@@ -231,12 +240,8 @@ class DepthPredictor:
             if im.shape[:2] != (h, w):
                 raise MonoMapError("images: a batch must share one size")
         H, W = self.cfg.input_height, self.cfg.input_width
+        batch = [resize_to_input(im, H, W)[0] for im in images]
         fh, fw = fit_size(h, w, H, W)
-        batch = []
-        for im in images:
-            r = cv2.resize(im, (fw, fh), interpolation=cv2.INTER_AREA) if (fh, fw) != (h, w) else im
-            r = np.pad(r, ((0, H - fh), (0, W - fw), (0, 0)), mode="edge")
-            batch.append(r)
         x = torch.from_numpy(np.stack(batch)).permute(0, 3, 1, 2).float().div_(255.0)
         return x.to(self.device), (fh, fw), (h, w)
 
