@@ -47,7 +47,7 @@ MAX_LINES = 450
 KNOWN_LONG: set[str] = {
     "mono_map/data/kitti.py",
     "mono_map/data/synth/town.py",
-    "mono_map/mapping/commands.py",
+    "mono_map/cli/mapping.py",
     "mono_map/mapping/jobs.py",
     "mono_map/mapping/raycast_c.py",
 }
@@ -55,9 +55,9 @@ KNOWN_LONG: set[str] = {
 
 def layer(module: str) -> int:
     """Position in the one-way flow: base (config, errors, io, paths, progress, geometry) 0, data 1,
-    depth 2, mapping 3, eval 4, viz 5, commands (cli.py, demo.py, */commands.py) 6."""
+    depth 2, mapping 3, eval 4, viz 5, the command line (cli/, __main__.py) 6."""
     parts = module.split(".")
-    if module in (f"{PACKAGE}.cli", f"{PACKAGE}.demo", f"{PACKAGE}.__main__") or parts[-1] == "commands":
+    if module == f"{PACKAGE}.__main__" or parts[1:2] == ["cli"]:
         return 6
     return {"data": 1, "depth": 2, "mapping": 3, "eval": 4, "viz": 5}.get(parts[1] if len(parts) > 2 else "", 0)
 

@@ -221,7 +221,7 @@ def run_build(args) -> int:
     check_name(args.name)
     rrd = check_output_file(args.rrd, "--rrd", ".rrd", min_free=RRD_MIN_FREE) if args.rrd else None
     if args.viewer:
-        from mono_map.viz.commands import check_display
+        from mono_map.cli.view import check_display
 
         check_display("--viewer", "use --rrd OUT.rrd and open it with mono-map view where there is one")
     if args.reference_map is not None and not Path(args.reference_map).is_file():

@@ -1,4 +1,4 @@
-"""Subcommands: ``train``, ``predict``, ``eval-depth`` (heavy imports inside the functions)."""
+"""``mono-map train``, ``predict``, ``eval-depth``, ``adapt`` (heavy imports inside the functions)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Subcommands of the data layer (registered by mono_map.cli): ``mono-map synth``, ``mono-map render-trainset``."""
+"""``mono-map synth``, ``mono-map render-trainset`` (registered by mono_map.cli.main)."""
 
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from mono_map.eval.table import TableJob
     from mono_map.frames import first_frames, frames_tag, parse_frames
     from mono_map.mapping.inputs import load_predictor
-    from mono_map.mapping.commands import DEFAULT_FRAMES, run_table
+    from mono_map.cli.mapping import DEFAULT_FRAMES, run_table
     from mono_map.mapping.jobs import (MapJob, MapRequest, build_and_write, build_and_write_all, model_digest,
                                        reusable)
     from mono_map.viz.rerun_stream import RerunMapLogger
