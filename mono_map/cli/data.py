@@ -1,10 +1,12 @@
-"""``mono-map synth``, ``mono-map render-trainset`` (registered by mono_map.cli.main)."""
+"""``mono-map synth``, ``mono-map render-trainset`` (registered by mono_map.cli.app)."""
 
 from __future__ import annotations
 
 import argparse
 import os
 import sys
+
+from mono_map.cli.options import add_data_root, add_frames, add_seq
 
 
 def register(subparsers) -> None:
@@ -13,11 +15,10 @@ def register(subparsers) -> None:
         description="Render a synthetic sequence in the KITTI odometry layout (image_2, velodyne, dense depth_2, "
                     "calib.txt, times.txt, poses/NAME.txt) from its recipe.  Existing frames of the same recipe are "
                     "kept, so asking for more frames extends a prefix.")
-    p.add_argument("--seq", required=True, help="recipe name (sequences/NAME.toml, e.g. 00) or path to a .toml")
-    p.add_argument("--frames", default=None,
-                   help="frames to have (the --frames grammar: N, A:B, 'all'; the prefix up to the last one is "
-                        "rendered; default: all of the recipe's)")
-    p.add_argument("--data-root", default=None, help="KITTI root (default $MONO_MAP_DATA or ./data/kitti)")
+    add_seq(p, required=True, help="recipe name (sequences/NAME.toml, e.g. 00) or path to a .toml")
+    add_frames(p, says="all of the recipe's",
+               what="frames to have (the prefix up to the last one is rendered)")
+    add_data_root(p, help="KITTI root (default $MONO_MAP_DATA or ./data/kitti)")
     p.add_argument("--workers", type=int, default=2, help="parallel render processes (default 2)")
     p.add_argument("--force", action="store_true", help="re-render every frame even if present")
     p.add_argument("--layout", choices=("odometry", "raw"), default="odometry",

@@ -18,7 +18,8 @@ from mono_map.errors import MonoMapError
 COMMAND_MODULES = (
     "mono_map.cli.data",           # synth, render-trainset
     "mono_map.cli.depth",          # train, predict, eval-depth, adapt
-    "mono_map.cli.mapping",        # build, eval
+    "mono_map.cli.build",          # build
+    "mono_map.cli.eval",           # eval
     "mono_map.cli.view",           # view
     "mono_map.cli.demo",           # demo (the README's main job)
 )
