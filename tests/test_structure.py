@@ -49,7 +49,6 @@ KNOWN_LONG: set[str] = {
     "mono_map/data/synth/town.py",
     "mono_map/mapping/commands.py",
     "mono_map/mapping/jobs.py",
-    "mono_map/mapping/raycast_c.py",
 }
 
 
