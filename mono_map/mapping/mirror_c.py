@@ -7,6 +7,7 @@ import numpy as np
 
 from mono_map.mapping.kernel_threads import helper_pool, use_two_threads
 
+
 def mirror_alloc_c(fn, keys: np.ndarray, table: np.ndarray, table_lo: np.ndarray, n_blocks: int) -> np.ndarray:
     """``mm_mirror_alloc``: flat table indices of the blocks of ``keys`` that had no slot (now slots
     n_blocks, n_blocks + 1, ... in that order)."""

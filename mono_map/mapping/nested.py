@@ -115,7 +115,8 @@ def _nested_updates_c(kernel, pts: np.ndarray, levels: np.ndarray, n_levels: int
 
     The bitmap over the frame's box (reused across frames) holds 2 for the end cells of the levels cast so
     far and 1 for cells already emitted as free; level by level, that level's new end cells are marked 2
-    and its rays emit only cells still 0 (:func:`mono_map.mapping.raycast.compute_update`'s kernel, unchanged)."""
+    and its rays emit only cells still 0 (the kernel of :func:`mono_map.mapping.raycast.compute_update`,
+    unchanged)."""
     from mono_map.mapping.raycast_c import ray_cells_c, unique_cells_c
 
     framed = frame_keys(kernel, pts, key_origin, res)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+
 def _blocks_in_code_order(block_codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(block slots sorted by their depth-13 code, the sorted codes), as ``mm_ot_nodes`` walks them."""
     codes = np.asarray(block_codes, dtype=np.int64)

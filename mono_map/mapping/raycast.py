@@ -292,9 +292,10 @@ def compute_update(points: np.ndarray, origin: np.ndarray, resolution: float,
 
 
 def frame_keys(kernel, pts: np.ndarray, key_origin: np.ndarray, res: float):
-    """A frame's end points for the compiled ray casts (here and :func:`mono_map.mapping.nested.compute_nested_updates`):
-    (float32 points, keys (N, 3), the frame's KeyBox with the origin, its zeroed reused bitmap), or None when
-    the box is too large for a bitmap; MonoMapError for points outside OctoMap's addressable range."""
+    """A frame's end points for the compiled ray casts (here and in
+    :func:`mono_map.mapping.nested.compute_nested_updates`): (float32 points, keys (N, 3), the frame's KeyBox
+    with the origin, its zeroed reused bitmap), or None when the box is too large for a bitmap; MonoMapError
+    for points outside OctoMap's addressable range."""
     from mono_map.mapping.kernel_threads import zeroed_bitmap
     from mono_map.mapping.raycast_c import point_keys_c
 
