@@ -16,7 +16,8 @@ import pytest
 from mono_map import geometry
 from mono_map.cli import main as cli_main
 from mono_map.data import kitti_raw
-from mono_map.data.kitti import KittiRawSequence, open_sequence
+from mono_map.data.kitti import open_sequence
+from mono_map.data.kitti_raw_reader import KittiRawSequence
 from mono_map.data.kitti_raw_writer import RawRig, synthetic_drive_name, write_raw_drive
 from mono_map.errors import MonoMapError
 from tiny_net import write_tiny_checkpoint

@@ -12,14 +12,8 @@ import pytest
 
 from mono_map import geometry
 from mono_map.cli import main as cli_main
-from mono_map.data.kitti import (
-    Calibration,
-    KittiSequence,
-    read_calib_file,
-    read_object_calibration,
-    read_poses_file,
-    read_velodyne_bin,
-)
+from mono_map.data.kitti_files import read_calib_file, read_poses_file, read_velodyne_bin
+from mono_map.data.kitti_odometry import Calibration, KittiSequence, read_object_calibration
 from mono_map.errors import MonoMapError
 from mono_map.paths import KITTI_ASSETS_DIR
 

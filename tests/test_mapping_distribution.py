@@ -64,11 +64,11 @@ def integrate_point_masses(integ: MapIntegrator, depth: np.ndarray, T: np.ndarra
 def weights_path(request, monkeypatch):
     """The kernel on one thread, split over two threads (even for small frames), and the sort-combined
     (index, update) pairs used for boxes too large for the dense buffer."""
-    from mono_map.mapping import distribution, raycast_c
+    from mono_map.mapping import distribution, kernel_threads
 
     monkeypatch.setenv("MONO_MAP_RAY_THREADS", "2" if request.param == "2-threads" else "1")
     if request.param == "2-threads":
-        monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
+        monkeypatch.setattr(kernel_threads, "PARALLEL_MIN_RAYS", 1)
     if request.param == "pairs":
         monkeypatch.setattr(distribution, "_DENSE_MAX_CELLS", 0)
     return request.param
@@ -148,7 +148,8 @@ def test_quantised_updates_lie_on_the_lattice():
 def test_compiled_quantise_split_equals_quantise_updates(quantum, snap_free):
     """The frame path's one-pass rounding and sign split gives quantise_updates' values bit for bit, the zeros
     dropped, the negatives first, each part in input order (ties of the rounding included: np.round's half-even)."""
-    from mono_map.mapping.raycast_c import load_kernel, quantise_split_c
+    from mono_map.mapping.distribution_c import quantise_split_c
+    from mono_map.mapping.raycast_c import load_kernel
 
     kernel = load_kernel()
     if kernel is None:
@@ -188,7 +189,7 @@ def one_ray(probs, edges, p_beyond=None, res=0.2, eps=1e-3):
 
 
 def test_kernel_paths_agree_on_distributions(monkeypatch):
-    from mono_map.mapping import distribution, raycast_c
+    from mono_map.mapping import distribution, kernel_threads
 
     rng = np.random.default_rng(7)
     edges = np.geomspace(1.0, 80.0, 33)
@@ -209,7 +210,7 @@ def test_kernel_paths_agree_on_distributions(monkeypatch):
     monkeypatch.setenv("MONO_MAP_RAY_THREADS", "1")
     k1, d1 = run()
     monkeypatch.setenv("MONO_MAP_RAY_THREADS", "2")
-    monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
+    monkeypatch.setattr(kernel_threads, "PARALLEL_MIN_RAYS", 1)
     k2, d2 = run()
     monkeypatch.setattr(distribution, "_DENSE_MAX_CELLS", 0)
     k3, d3 = run()
@@ -585,7 +586,7 @@ def test_skipping_surely_free_cells_gives_the_same_snapped_updates(max_range, mi
 def test_the_checks_row_mass_is_the_kernels_own_sum(monkeypatch):
     """distribution_update hands the check's per-row sums to the kernel: the same bits as the kernel summing
     each ray's bins itself (bin order, float64), so the updates are identical."""
-    from mono_map.mapping import raycast_c
+    from mono_map.mapping import distribution_c
     from mono_map.mapping.distribution import row_stats
 
     origin, far, fd, probs, pb, edges = street_rays(1)[0]
@@ -593,8 +594,8 @@ def test_the_checks_row_mass_is_the_kernels_own_sum(monkeypatch):
     row_stats(probs, pb, mass)
     assert np.array_equal(mass, np.cumsum(probs.astype(np.float64), axis=1)[:, -1])   # sequential, bin order
     given = distribution_update(origin, far, fd, probs, pb, edges, 0.2, HIT, MISS, quantum=0.2, snap_free=True)
-    plain = raycast_c.ray_weights_c
-    monkeypatch.setattr(raycast_c, "ray_weights_c", lambda *a, **k: plain(*a, **{**k, "mass": None}))
+    plain = distribution_c.ray_weights_c
+    monkeypatch.setattr(distribution_c, "ray_weights_c", lambda *a, **k: plain(*a, **{**k, "mass": None}))
     summed = distribution_update(origin, far, fd, probs, pb, edges, 0.2, HIT, MISS, quantum=0.2, snap_free=True)
     a, b = np.lexsort(given.keys.T), np.lexsort(summed.keys.T)      # two threads: cells in either order
     assert len(given.dl) > 20_000 and (given.dl > 0).any()
@@ -713,10 +714,10 @@ def test_probabilities_at_a_step_the_rays_cannot_use_are_one_clear_error(tiny_ro
 def test_an_interrupted_frame_leaves_the_reused_buffers_clean(monkeypatch, threads):
     """An error (e.g. Ctrl-C) in the middle of a frame's kernel calls must not leave updates in the buffers the
     next frame reuses: the same frame integrated again gives the same updates as before the interrupt."""
-    from mono_map.mapping import raycast_c
+    from mono_map.mapping import kernel_threads, raycast_c
 
     monkeypatch.setenv("MONO_MAP_RAY_THREADS", threads)
-    monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
+    monkeypatch.setattr(kernel_threads, "PARALLEL_MIN_RAYS", 1)
     o1, f1, d1, p1, b1, e1 = street_rays(1, seed=5)[0]
 
     def second():

@@ -12,8 +12,9 @@ import pytest
 from mono_map.config import OctoMapConfig
 from mono_map.errors import MonoMapError
 from mono_map.eval.map_metrics import compare_leaves
-from mono_map.mapping import raycast, raycast_c
-from mono_map.mapping.integrate import LogOddsMirror, MapIntegrator, octree_memory_usage
+from mono_map.mapping import kernel_threads, ot_c, raycast, raycast_c
+from mono_map.mapping.integrate import MapIntegrator, octree_memory_usage
+from mono_map.mapping.mirror import LogOddsMirror
 from mono_map.mapping.octree import key_to_coord, morton_codes, tree_leaves
 from mono_map.mapping.scangraph import write_scan_graph
 
@@ -54,7 +55,7 @@ def kernel(request, monkeypatch):
             pytest.fail("the compiled kernel must build here (gcc is part of the machine)")
         monkeypatch.setenv("MONO_MAP_RAY_THREADS", "2" if request.param == "c-2threads" else "1")
         if request.param == "c-2threads":
-            monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
+            monkeypatch.setattr(kernel_threads, "PARALLEL_MIN_RAYS", 1)
     yield request.param
 
 
@@ -160,7 +161,7 @@ def test_dense_scans_match_insertPointCloud(kernel, max_range, discretize):
         assert key_codes(ks.occupied) == {k for k, v in cells.items() if v > 0}
         assert len(ks.free) == len(key_codes(ks.free)) and len(ks.occupied) == len(key_codes(ks.occupied))
         if kernel != "numpy":
-            assert not raycast_c.zeroed_bitmap(int(np.prod(ks.hi - ks.lo + 1))).any()
+            assert not kernel_threads.zeroed_bitmap(int(np.prod(ks.hi - ks.lo + 1))).any()
 
 
 def test_kernel_node_stream_equals_numpy_stream():
@@ -184,13 +185,13 @@ def test_kernel_node_stream_equals_numpy_stream():
     vals = vals[first]
     idx = m.index(keys, create=True)
     m.pool[idx] = vals
-    nodes, n = raycast_c.ot_nodes_c(kernel, m.pool, child_order_codes(m.block_keys[:m.n_blocks] >> 3))
+    nodes, n = ot_c.ot_nodes_c(kernel, m.pool, child_order_codes(m.block_keys[:m.n_blocks] >> 3))
     ref, n_ref = ot_stream(keys, vals, 0.2)
     assert n == n_ref and ot_header(n, 0.2) + nodes.tobytes() == ref
     assert m.node_stream(kernel, 0.2).tobytes() == ref                 # header + nodes in one buffer
     tree = octomap.OcTree.read(ref)
     assert tree.getNumLeafNodes() < len(keys)                          # some groups did collapse
-    assert raycast_c.ot_counts_c(kernel, m.pool, m.block_codes()) == (tree.size(), tree.getNumLeafNodes())
+    assert ot_c.ot_counts_c(kernel, m.pool, m.block_codes()) == (tree.size(), tree.getNumLeafNodes())
 
 
 def test_changed_cells_reported():

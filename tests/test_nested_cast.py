@@ -11,8 +11,9 @@ import pytest
 from mono_map.config import OctoMapConfig
 from mono_map.data.kitti import open_sequence
 from mono_map.errors import MonoMapError
-from mono_map.mapping import raycast, raycast_c
+from mono_map.mapping import kernel_threads, raycast, raycast_c
 from mono_map.mapping.jobs import MapJob
+from mono_map.mapping.nested import compute_nested_updates
 from mono_map.mapping.pipeline import build_map, build_maps, make_builders, share_ray_casts
 from mono_map.mapping.octree import morton_codes, tree_leaves
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor
@@ -47,9 +48,9 @@ def test_nested_updates_equal_each_scan_alone(mode, seed, monkeypatch):
         assert raycast_c.load_kernel() is not None
         monkeypatch.setenv("MONO_MAP_RAY_THREADS", "2" if mode == "c-2threads" else "1")
         if mode == "c-2threads":
-            monkeypatch.setattr(raycast_c, "_PARALLEL_MIN_RAYS", 1)
+            monkeypatch.setattr(kernel_threads, "PARALLEL_MIN_RAYS", 1)
     pts, levels, origin = nested_scan(seed)
-    nested = raycast.compute_nested_updates(pts, levels, 3, origin, 0.2)
+    nested = compute_nested_updates(pts, levels, 3, origin, 0.2)
     assert len(nested) == 3
     for j, ks in enumerate(nested):
         alone = raycast.compute_update(pts[levels <= j], origin, 0.2)
@@ -60,7 +61,7 @@ def test_nested_updates_equal_each_scan_alone(mode, seed, monkeypatch):
     assert codes(nested[0].free) - codes(nested[2].free)
     # the reused bitmap is left zeroed: a scan afterwards is the same as on a fresh bitmap
     again = raycast.compute_update(pts, origin, 0.2)
-    raycast_c.release_buffers()
+    kernel_threads.release_buffers()
     fresh = raycast.compute_update(pts, origin, 0.2)
     assert codes(again.free) == codes(fresh.free)
 
@@ -70,7 +71,7 @@ def test_nested_updates_refuse_bad_levels_in_one_line():
     for bad, n_levels, what in ((levels + 5, 3, "levels: must lie in"), (levels[:-1], 3, "levels: 49 levels"),
                                 (levels, 0, "n_levels")):
         with pytest.raises(MonoMapError, match=what) as e:
-            raycast.compute_nested_updates(pts, bad, n_levels, origin, 0.2)
+            compute_nested_updates(pts, bad, n_levels, origin, 0.2)
         assert "\n" not in str(e.value)
 
 

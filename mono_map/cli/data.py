@@ -72,7 +72,7 @@ def run_synth(args: argparse.Namespace) -> int:
     size = sum(p.stat().st_size for p in seq_dir.rglob("*") if p.is_file())
     print(f"sequence {recipe.name}: {n} frames in {seq_dir} ({size / 1e6:.0f} MB), {dt:.1f} s", file=sys.stderr)
     if drive is not None:
-        from mono_map.data.kitti import KittiSequence
+        from mono_map.data.kitti_odometry import KittiSequence
         from mono_map.data.kitti_raw_writer import write_raw_drive
 
         seq = KittiSequence(root, recipe.name)

@@ -149,7 +149,7 @@ def run_predict(args) -> int:
         idx = selection.resolve(len(seq))
         items = [(f"{i:06d}", (lambda i=i: seq.image(i))) for i in idx]
     else:
-        from mono_map.data.kitti import PNG_GRAY_TYPES, read_image_rgb, read_png_header
+        from mono_map.data.kitti_files import PNG_GRAY_TYPES, read_image_rgb, read_png_header
 
         folder = Path(args.images)
         files = sorted(p for p in folder.glob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))

@@ -9,7 +9,7 @@ Layout under a raw root (the standard KITTI raw download, ``*_sync`` drives)::
     2011_09_26/2011_09_26_drive_0013_sync/velodyne_points/data/NNNNNNNNNN.bin
     2011_09_26/2011_09_26_drive_0013_sync/oxts/data/NNNNNNNNNN.txt   30 numbers: lat lon alt roll pitch yaw …
 
-The reader (:class:`mono_map.data.kitti.KittiRawSequence`) expresses everything in the odometry
+The reader (:class:`mono_map.data.kitti_raw_reader.KittiRawSequence`) expresses everything in the odometry
 convention: velodyne → rectified cam0 is ``T_cam0_velo = R_rect_00 · [R | T]``; poses are rectified cam0
 in the first frame's cam0, ``T_world_cam0(i) = T_cam0_imu · T_w_imu(0)⁻¹ · T_w_imu(i) · T_cam0_imu⁻¹``
 with ``T_cam0_imu = T_cam0_velo · T_velo_imu`` and ``T_w_imu`` from OXTS by pykitti's formulas

@@ -24,7 +24,8 @@ import numpy as np
 
 from mono_map import geometry
 from mono_map.data import kitti_raw
-from mono_map.data.kitti import KittiSequence, read_calib_file
+from mono_map.data.kitti_files import read_calib_file
+from mono_map.data.kitti_odometry import KittiSequence
 from mono_map.errors import MonoMapError
 from mono_map.io import staged_dir, write_text_atomic
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from mono_map.data.kitti import KittiSequence, open_sequence
+from mono_map.data.kitti import open_sequence
+from mono_map.data.kitti_odometry import KittiSequence
 from mono_map.errors import MonoMapError
 from mono_map.frames import FrameSelection
 from mono_map.paths import data_root

@@ -21,7 +21,8 @@ MS = (1, 3, 5, 10)
 
 def object_frames(root: str | Path) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """Real KITTI object-benchmark frames -> [(name, RGB image, LiDAR depth of image_2 in metres)]."""
-    from mono_map.data.kitti import read_image_rgb, read_object_calibration, read_velodyne_bin
+    from mono_map.data.kitti_files import read_image_rgb, read_velodyne_bin
+    from mono_map.data.kitti_odometry import read_object_calibration
     from mono_map.errors import MonoMapError
     from mono_map.geometry import lidar_depth_image, transform_points
 

@@ -133,7 +133,8 @@ def check_distribution(probs: np.ndarray, p_beyond: np.ndarray | None, edges: np
 def row_stats(probs: np.ndarray, pb: np.ndarray, mass: np.ndarray | None = None) -> dict:
     """Counts of non-finite and negative values, minima, the largest row total and the rows above 1 + tol
     (compiled: one pass; numpy otherwise); ``mass`` (float64 (N,)): filled with the rows' sums of finite probs."""
-    from mono_map.mapping.raycast_c import check_rows_c, load_kernel
+    from mono_map.mapping.distribution_c import check_rows_c
+    from mono_map.mapping.raycast_c import load_kernel
 
     kernel = load_kernel()
     if kernel is not None:
@@ -188,7 +189,8 @@ def ray_distributions(probs: np.ndarray, p_beyond: np.ndarray, temperature: floa
     sums in another order, so the last float bit may differ). ``overwrite``: ``probs`` (the caller's scratch)
     may be overwritten with the result. ``rows`` (int (N,)): the rays are these rows of ``probs`` (M, K)
     (the compiled pass reads them in place instead of a gathered copy)."""
-    from mono_map.mapping.raycast_c import load_kernel, ray_mass_c
+    from mono_map.mapping.distribution_c import ray_mass_c
+    from mono_map.mapping.raycast_c import load_kernel
 
     kernel = load_kernel()
     if kernel is None:
@@ -297,7 +299,8 @@ def expected_updates(probs: np.ndarray, p_beyond: np.ndarray | None, edges: np.n
 def far_depth(probs: np.ndarray, p_beyond: np.ndarray, edges: np.ndarray, eps: float) -> np.ndarray:
     """(N,) depth (metres) where P(surface beyond) first falls below ``eps`` (linear within the bin); the
     last edge if it never does (e.g. p_beyond ≥ eps). A point mass's far depth is its depth."""
-    from mono_map.mapping.raycast_c import far_depth_c, load_kernel
+    from mono_map.mapping.distribution_c import far_depth_c
+    from mono_map.mapping.raycast_c import load_kernel
 
     kernel = load_kernel()
     if kernel is not None:
@@ -330,7 +333,8 @@ def distribution_update(origin: np.ndarray, far_points: np.ndarray, far_depths: 
     edges (K+1,) or (N, K+1): the distributions; hit, miss: float32 log-odds of the sensor model;
     min_update: weaker updates are dropped; quantum, snap_free: updates rounded (:func:`quantise_updates`).
     """
-    from mono_map.mapping.raycast_c import load_kernel, quantise_split_c, ray_weights_c
+    from mono_map.mapping.distribution_c import quantise_split_c, ray_weights_c
+    from mono_map.mapping.raycast_c import load_kernel
 
     mass = np.empty(len(probs) if np.ndim(probs) == 2 else 0)   # the rays' sums of probs: the check's by-product
     probs, pb, edges = check_distribution(probs, p_beyond, edges, mass=mass)

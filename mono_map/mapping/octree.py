@@ -344,7 +344,7 @@ def stream_leaves(kernel, tree, n: int) -> tuple[np.ndarray, np.ndarray, np.ndar
     import os
     import tempfile
 
-    from mono_map.mapping.raycast_c import ot_leaves_c
+    from mono_map.mapping.ot_c import ot_leaves_c
 
     with tempfile.TemporaryDirectory(prefix="mono-map-leaves-") as tmp:
         path = os.path.join(tmp, "tree.ot")

@@ -23,7 +23,7 @@ from mono_map.data.synth import writer
 from mono_map.data.synth.recipe import Recipe, load_recipe, recipe_path
 from mono_map.data.synth.trajectory import frame_pose_indices, frame_pose_lines, frame_poses
 from mono_map.errors import MonoMapError
-from mono_map.io import clean_stale_temps, pid_alive
+from mono_map.temps import clean_stale_temps, pid_alive
 
 GENERATOR_VERSION = "3"
 FRAME_PERIOD = 0.1          # seconds between consecutive real poses (KITTI records at 10 Hz)

@@ -1,4 +1,5 @@
-"""The procedural town around a trajectory: ground, curbs, buildings, parked cars, trees, poles, fences.
+"""The procedural town around a trajectory: ground, curbs and buildings here; parked cars, trees, poles and
+fences in :mod:`mono_map.data.synth.props`, placed with :mod:`mono_map.data.synth.placement`.
 
 Everything is a triangle mesh in the world frame (first cam0 frame: x right, y down,
 z forward; metres) with a material id and an object id per triangle; textures are
@@ -14,17 +15,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mono_map.data.synth import materials as M
-from mono_map.data.synth.meshes import MeshBuilder, blob, box, cylinder
+from mono_map.data.synth.meshes import MeshBuilder, box
+from mono_map.data.synth.placement import (BRICK, STOREFRONT, ObjectTable, Occupancy, box_axes, clear_of_road,
+                                           footprint_samples, frame_at)
+from mono_map.data.synth.props import add_cars, add_fences, add_trees_and_poles
 from mono_map.data.synth.trajectory import PathIndex, RoadPath, build_road_path, town_poses
 
 GROUND_RADIUS = 60.0      # metres of ground kept around the road path
 GROUND_RES = 1.0          # ground grid spacing, metres
-
-# object flags
-BLACK = 1
-BRICK = 2
-STOREFRONT = 4
-VAN = 8
 
 
 @dataclass
@@ -53,60 +51,15 @@ class Town:
         return -(1.5 * s.lane_width + s.parking_width), 0.5 * s.lane_width + s.parking_width
 
 
-class _Objects:
-    def __init__(self):
-        self.color, self.flags, self.origin, self.params = [], [], [], []
-
-    def add(self, color, flags=0, origin=(0, 0, 0), params=(0, 0, 0, 0)) -> int:
-        self.color.append(color)
-        self.flags.append(flags)
-        self.origin.append(origin)
-        self.params.append(params)
-        return len(self.color) - 1
-
-
-class _Occupancy:
-    """Coarse raster (0.5 m) of footprints already used, so revisited streets are not built twice."""
-
-    def __init__(self, index: PathIndex, res: float = 0.5):
-        self.origin = index.origin
-        self.res = res
-        rows = int(index.shape[0] * index.res / res) + 2
-        cols = int(index.shape[1] * index.res / res) + 2
-        self.grid = np.zeros((rows, cols), bool)
-
-    def _ij(self, xz):
-        ij = np.floor((xz - self.origin) / self.res).astype(np.int64)
-        return np.clip(ij, 0, [self.grid.shape[1] - 1, self.grid.shape[0] - 1])
-
-    def free(self, xz) -> bool:
-        ij = self._ij(xz)
-        return not self.grid[ij[:, 1], ij[:, 0]].any()
-
-    def mark(self, xz) -> None:
-        ij = self._ij(xz)
-        self.grid[ij[:, 1], ij[:, 0]] = True
-
-
-def _footprint_samples(center, f, r, half_len, half_wid, step=0.5):
-    a = np.arange(-half_len, half_len + 1e-9, step)
-    b = np.arange(-half_wid, half_wid + 1e-9, step)
-    a = np.unique(np.concatenate([a, [half_len]]))
-    b = np.unique(np.concatenate([b, [half_wid]]))
-    A, B = np.meshgrid(a, b)
-    pts = center[None, :] + A.reshape(-1, 1) * f[None, :] + B.reshape(-1, 1) * r[None, :]
-    return pts[:, [0, 2]]
-
-
 def build_town(recipe) -> Town:
     """Deterministic town for a recipe (depends on nothing else)."""
     rng = np.random.default_rng([recipe.seed, 7])
     _, poses = town_poses(recipe)
     path = build_road_path(poses)
     index = PathIndex(path, margin=GROUND_RADIUS + 5.0)
-    occ = _Occupancy(index)
+    occ = Occupancy(index)
     mb = MeshBuilder()
-    objs = _Objects()
+    objs = ObjectTable()
     st = recipe.street
     left_edge = 1.5 * st.lane_width + st.parking_width
     right_edge = 0.5 * st.lane_width + st.parking_width
@@ -119,9 +72,9 @@ def build_town(recipe) -> Town:
     for side in (+1, -1):
         _add_buildings(mb, objs, occ, path, index, rng, recipe, side, edges[side], counts)
     for side in (+1, -1):
-        _add_cars(mb, objs, occ, path, index, rng, recipe, side, counts)
-        _add_trees_and_poles(mb, objs, occ, path, index, rng, recipe, side, edges[side], counts)
-        _add_fences(mb, objs, occ, path, index, rng, recipe, side, edges[side], counts)
+        add_cars(mb, objs, occ, path, index, rng, recipe, side, counts)
+        add_trees_and_poles(mb, objs, occ, path, index, rng, recipe, side, edges[side], counts)
+        add_fences(mb, objs, occ, path, index, rng, recipe, side, edges[side], counts)
 
     V, F, mat, obj = mb.arrays()
     ls = np.zeros((len(V), 2), np.float32)
@@ -176,19 +129,6 @@ def _add_ground(mb: MeshBuilder, path: RoadPath, index: PathIndex) -> np.ndarray
     return np.stack([l, s], 1).astype(np.float32)
 
 
-def _clear(index: PathIndex, xz: np.ndarray, clearance: float) -> bool:
-    return index.min_distance(xz) >= clearance
-
-
-def _frame_at(path: RoadPath, s: float):
-    k = int(np.clip(np.searchsorted(path.s, s), 0, len(path.s) - 1))
-    return k, path.points[k], path.forward[k], path.right[k]
-
-
-def _axes(f, r):
-    return np.stack([f, np.array([0.0, 1.0, 0.0]), r], 1)
-
-
 def _add_curbs(mb, path, index, edges, st) -> int:
     """Curb stones along both road edges, 2 m pieces, removed where they would cross another pass's road.
     The pieces' end and mid points are looked up in the path index in one batch (the same per-point results
@@ -197,8 +137,8 @@ def _add_curbs(mb, path, index, edges, st) -> int:
     pieces = []                      # (s0, a, b, mid, unit direction, length) of pieces of a plausible length
     for side, edge in edges.items():
         for s0 in np.arange(0.0, path.s[-1] - step, step):
-            k0, p0, f0, r0 = _frame_at(path, s0)
-            k1, p1, f1, r1 = _frame_at(path, s0 + step)
+            k0, p0, f0, r0 = frame_at(path, s0)
+            k1, p1, f1, r1 = frame_at(path, s0 + step)
             a = p0 + side * r0 * (edge + 0.125)
             b = p1 + side * r1 * (edge + 0.125)
             mid = (a + b) / 2
@@ -221,7 +161,7 @@ def _add_curbs(mb, path, index, edges, st) -> int:
         r = np.cross([0.0, 1.0, 0.0], f)
         h = st.curb_height
         center = mid + np.array([0.0, -(h - 0.1) / 2, 0.0])
-        V, F = box(center, _axes(f, r), [length / 2 + 0.01, (h + 0.1) / 2, 0.125])
+        V, F = box(center, box_axes(f, r), [length / 2 + 0.01, (h + 0.1) / 2, 0.125])
         mb.add(V, F, M.CURB)
         n += 1
     return n
@@ -270,10 +210,10 @@ def path_edge(st):
 
 def _place_building(mb, objs, occ, path, index, s_c, side, near, w, depth, height, brick, store, cidx,
                     glass_fraction, clearance) -> bool:
-    k, p, f, r = _frame_at(path, s_c)
+    k, p, f, r = frame_at(path, s_c)
     center = p + side * r * (near + depth / 2)
-    pts = _footprint_samples(center, f, r, w / 2, depth / 2)
-    if not _clear(index, pts, clearance) or not occ.free(pts):
+    pts = footprint_samples(center, f, r, w / 2, depth / 2)
+    if not clear_of_road(index, pts, clearance) or not occ.free(pts):
         return False
     occ.mark(pts)
     palette = _BRICK if brick else _PLASTER
@@ -291,176 +231,6 @@ def _place_building(mb, objs, occ, path, index, s_c, side, near, w, depth, heigh
     bottom = p[1] + 0.6                      # sink 0.6 m into the ground (slopes)
     top = p[1] - height
     c = np.array([center[0], (bottom + top) / 2, center[2]])
-    V, F = box(c, _axes(f, r), [w / 2, (bottom - top) / 2, depth / 2])
+    V, F = box(c, box_axes(f, r), [w / 2, (bottom - top) / 2, depth / 2])
     mb.add(V, F, M.FACADE, oid)
     return True
-
-
-# ----------------------------------------------------------------------------- cars
-
-_CAR_COLORS = [(0.85, 0.85, 0.85), (0.62, 0.63, 0.65), (0.35, 0.36, 0.38), (0.12, 0.18, 0.38),
-               (0.55, 0.08, 0.07), (0.10, 0.26, 0.16), (0.72, 0.66, 0.52), (0.90, 0.90, 0.88),
-               (0.25, 0.25, 0.27), (0.45, 0.50, 0.60)]
-_BLACK_PAINT = (0.025, 0.025, 0.03)
-
-
-def _add_cars(mb, objs, occ, path, index, rng, recipe, side, counts):
-    cp = recipe.cars
-    st = recipe.street
-    lat = 0.5 * st.lane_width + st.parking_width / 2 + 0.1 if side > 0 else \
-        1.5 * st.lane_width + st.parking_width / 2 + 0.1
-    s = float(rng.uniform(0, 4))
-    while s < path.s[-1]:
-        van = rng.random() < cp.van_fraction
-        L = float(rng.uniform(5.0, 6.8) if van else rng.uniform(3.9, 4.8))
-        W = float(rng.uniform(1.95, 2.2) if van else rng.uniform(1.72, 1.86))
-        H = float(rng.uniform(2.2, 2.9) if van else rng.uniform(1.38, 1.55))
-        black = rng.random() < cp.black_fraction
-        color = _BLACK_PAINT if black else _CAR_COLORS[int(rng.integers(len(_CAR_COLORS)))]
-        place = rng.random() < cp.density
-        jitter = float(rng.normal(0, 0.12))
-        yaw = float(rng.normal(0, 0.03))
-        gap = float(rng.uniform(0.8, 3.0))
-        if place:
-            k, p, f, r = _frame_at(path, s + L / 2)
-            c, sn = np.cos(yaw), np.sin(yaw)
-            f2 = c * f + sn * r
-            r2 = np.cross([0.0, 1.0, 0.0], f2)
-            center = p + side * r * (lat + jitter)
-            pts = _footprint_samples(center, f2, r2, L / 2, W / 2, step=0.4)
-            if _clear(index, pts, 1.8) and occ.free(pts):
-                occ.mark(pts)
-                flags = (BLACK if black else 0) | (VAN if van else 0)
-                oid = objs.add(color, flags)
-                _car_mesh(mb, oid, center, f2, r2, L, W, H, van)
-                counts["cars"] += 1
-                counts["black_cars"] += int(black)
-        s += L + gap if place else float(rng.uniform(4.0, 9.0))
-
-
-def _car_mesh(mb, oid, ground_center, f, r, L, W, H, van):
-    axes = _axes(f, r)
-    up = np.array([0.0, -1.0, 0.0])
-    clearance = 0.28
-    if van:
-        body_h = H - clearance
-        c = ground_center + up * (clearance + body_h / 2) + f * 0.0
-        V, F = box(c, axes, [L / 2 - 0.9, body_h / 2, W / 2])          # cargo box (rear)
-        V[:, :] += f * (-0.9)
-        mb.add(V, F, M.CAR_PAINT, oid)
-        cab_h = body_h * 0.8
-        c2 = ground_center + up * (clearance + cab_h / 2) + f * (L / 2 - 0.9)
-        V, F = box(c2, axes, [0.9, cab_h / 2, W / 2 - 0.03])
-        mat = np.full(12, M.CAR_PAINT, np.uint8)
-        mat[[8, 9]] = M.CAR_GLASS                    # +f face: windscreen
-        mb.add_tagged(V, F, mat, oid)
-    else:
-        body_h = 0.55 + 0.25 * (H - 1.38) / 0.17 * 0.5
-        c = ground_center + up * (clearance + body_h / 2)
-        V, F = box(c, axes, [L / 2, body_h / 2, W / 2])
-        mb.add(V, F, M.CAR_PAINT, oid)
-        cab_h = H - clearance - body_h
-        c2 = ground_center + up * (clearance + body_h + cab_h / 2) - f * (L * 0.06)
-        V, F = box(c2, axes, [L * 0.27, cab_h / 2, W / 2 - 0.08])
-        # slant the windscreen / rear window: pull the top corners inwards along f
-        top = (V - c2) @ up > 0
-        V[top] -= np.outer(np.sign((V[top] - c2) @ f), f) * 0.35
-        mat = np.full(12, M.CAR_GLASS, np.uint8)
-        mat[[4, 5]] = M.CAR_PAINT                    # roof
-        mb.add_tagged(V, F, mat, oid)
-    for a in (-1, 1):
-        for b in (-1, 1):
-            wc = ground_center + f * a * (L / 2 - 0.8) + r * b * (W / 2 - 0.12) + up * 0.33 - r * b * 0.11
-            V, F = cylinder(wc, r * b, 0.33, 0.22, segments=10)
-            mb.add(V, F, M.TYRE, oid)
-
-
-# ----------------------------------------------------------------------------- trees, poles, fences
-
-def _add_trees_and_poles(mb, objs, occ, path, index, rng, recipe, side, edge, counts):
-    tp = recipe.trees
-    pp = recipe.props
-    up = np.array([0.0, -1.0, 0.0])
-    s = float(rng.uniform(0, tp.spacing))
-    while s < path.s[-1]:
-        crown = float(rng.uniform(1.4, 2.8))
-        trunk_h = float(rng.uniform(2.6, 4.0)) + 0.3 * crown
-        trunk_r = float(rng.uniform(0.1, 0.2))
-        lat = edge + float(rng.uniform(0.7, 1.4))
-        tree_rng = np.random.default_rng(int(rng.integers(1 << 31)))
-        tint = float(rng.uniform(0.75, 1.2))
-        if rng.random() < tp.density:
-            k, p, f, r = _frame_at(path, s)
-            base = p + side * r * lat
-            c = base + up * (trunk_h + 0.6 * crown)
-            ring = c[None] + crown * np.array([f, -f, r, -r, 0.7 * (f + r), 0.7 * (f - r), -0.7 * (f + r), -0.7 * (f - r)])
-            if _clear(index, base[None, [0, 2]], edge - 0.2) and _clear(index, ring[:, [0, 2]], 2.2) \
-                    and occ.free(base[None, [0, 2]]):
-                occ.mark(base[None, [0, 2]])
-                oid = objs.add((0.20 * tint, 0.30 * tint, 0.10 * tint))
-                V, F = cylinder(base + up * -0.2, up, trunk_r, trunk_h + 0.2 + 0.3 * crown, segments=7)
-                mb.add(V, F, M.TRUNK, oid)
-                V, F = blob(c, [crown, crown * 0.85, crown], tree_rng)
-                mb.add(V, F, M.FOLIAGE, oid)
-                counts["trees"] += 1
-        s += tp.spacing * float(rng.uniform(0.7, 1.3))
-    s = float(rng.uniform(0, pp.pole_spacing))
-    while s < path.s[-1]:
-        k, p, f, r = _frame_at(path, s)
-        height = float(rng.uniform(6.5, 8.5))
-        base = p + side * r * (edge + 0.45)
-        if _clear(index, base[None, [0, 2]], edge - 0.1) and occ.free(base[None, [0, 2]]):
-            occ.mark(base[None, [0, 2]])
-            oid = objs.add((0.38, 0.39, 0.40))
-            V, F = cylinder(base + up * -0.2, up, 0.09, height + 0.2, segments=8)
-            mb.add(V, F, M.METAL, oid)
-            arm_c = base + up * (height - 0.1) - side * r * 0.9
-            V, F = box(arm_c, _axes(f, r), [0.05, 0.05, 0.95])
-            mb.add(V, F, M.METAL, oid)
-            V, F = box(arm_c - side * r * 0.8 + up * -0.1, _axes(f, r), [0.18, 0.07, 0.3])
-            mb.add(V, F, M.LAMP, oid)
-            counts["poles"] += 1
-        s += pp.pole_spacing * float(rng.uniform(0.8, 1.2))
-
-
-_FENCE_COLORS = [(0.45, 0.32, 0.20), (0.55, 0.45, 0.32), (0.30, 0.32, 0.30), (0.62, 0.60, 0.55)]
-
-
-def _add_fences(mb, objs, occ, path, index, rng, recipe, side, edge, counts):
-    """Fence panels along the back of the sidewalk where no building stands."""
-    pp = recipe.props
-    st = recipe.street
-    lat = edge + st.sidewalk_width + 0.15
-    step = 2.5
-    s = 0.0
-    while s < path.s[-1]:
-        block = 25.0
-        on = rng.random() < pp.fence_fraction
-        height = float(rng.uniform(1.0, 1.8))
-        color = _FENCE_COLORS[int(rng.integers(len(_FENCE_COLORS)))]
-        oid = None
-        if on:
-            for s0 in np.arange(s, min(s + block, path.s[-1] - step), step):
-                k0, p0, f0, r0 = _frame_at(path, s0)
-                k1, p1, f1, r1 = _frame_at(path, s0 + step)
-                a = p0 + side * r0 * lat
-                b = p1 + side * r1 * lat
-                f = b - a
-                length = np.linalg.norm(f)
-                if length < 1.0 or length > 4.0:
-                    continue
-                f /= length
-                r = np.cross([0.0, 1.0, 0.0], f)
-                mid = (a + b) / 2
-                pts = np.stack([a, mid, b])[:, [0, 2]]
-                inner = np.stack([0.75 * a + 0.25 * b, mid, 0.25 * a + 0.75 * b])[:, [0, 2]]
-                if not _clear(index, pts, edge + st.sidewalk_width - 0.3) or not occ.free(inner):
-                    continue
-                occ.mark(inner)
-                if oid is None:
-                    oid = objs.add(color)
-                    counts["fences"] += 1
-                c = mid + np.array([0.0, -(height - 0.2) / 2, 0.0])
-                V, F = box(c, _axes(f, r), [length / 2, (height + 0.2) / 2, 0.03])
-                mb.add(V, F, M.FENCE, oid)
-        s += block

@@ -118,8 +118,9 @@ class TownRenderer:
         from mono_map.data.synth import writer
         from mono_map.data.synth.camera import Lighting, PinholeCamera
         from mono_map.data.synth.lidar import ray_directions
+        from mono_map.data.synth.placement import BLACK
         from mono_map.data.synth.randomize import randomized_appearance, randomized_recipe, recolor_objects
-        from mono_map.data.synth.town import BLACK, build_town
+        from mono_map.data.synth.town import build_town
         from mono_map.data.synth.trajectory import frame_poses
         from mono_map.config import KITTI_IMAGE_HEIGHT, KITTI_IMAGE_WIDTH
         from mono_map.geometry import T_cam_cam0_from_projection, pose_inverse

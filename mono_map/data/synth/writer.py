@@ -48,7 +48,7 @@ def calib_text() -> str:
 def read_calib() -> dict[str, np.ndarray]:
     """The calibration synthetic sequences are written with (real KITTI 00's), through the reader's
     parser: {'P0'..'P3': 3×4, 'Tr': 4×4 (velodyne → cam0)}."""
-    from mono_map.data.kitti import read_calib_file
+    from mono_map.data.kitti_files import read_calib_file
 
     out = {key: value.reshape(3, 4) for key, value in read_calib_file(KITTI_ASSETS_DIR / "calib_00.txt").items()}
     Tr = np.eye(4)
