@@ -30,11 +30,13 @@ def timeit(fn, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main() -> None:
+    from mono_map.cli.options import add_threads
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--arch", default="small")
     ap.add_argument("--head", default="binary")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--frames", type=int, default=20)
+    add_threads(ap, default=2)
+    ap.add_argument("--frames", type=int, default=20, help="timed repetitions of each forward pass (default 20)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cfg = named_config(args.arch, head=args.head)

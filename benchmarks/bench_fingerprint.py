@@ -43,11 +43,13 @@ def stand_in_sequence(folder: Path, n: int) -> SimpleNamespace:
 
 
 def main() -> None:
+    from mono_map.cli.options import add_seq
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=4541)
+    ap.add_argument("--frames", type=int, default=4541, help="stand-in frames to write and fingerprint (default 4541)")
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--root", default=None, help="a KITTI root to fingerprint instead of stand-in files")
-    ap.add_argument("--seq", default="00")
+    add_seq(ap, help="with --root: the sequence to fingerprint")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         if args.root:

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from mono_map.config import OctoMapConfig
+from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq
 from mono_map.data.prepare import prepare_sequence
 from mono_map.frames import first_frames, parse_frames
 from mono_map.mapping.distribution import DistributionConfig
@@ -121,6 +122,7 @@ def agreement(a, b) -> dict:
 def bench_integrations(args) -> int:
     """--integrate: keep vs distribution, back to back, on the same frames (see the module docstring)."""
     from mono_map.mapping.build import make_builder
+    from mono_map.mapping.jobs import MapJob
 
     from mono_map.mapping.inputs import FrameInputs, load_predictor
 
@@ -142,16 +144,20 @@ def bench_integrations(args) -> int:
     def updates(integrate):
         """The map update alone: the builder's per-frame step on the predicted frames, then the octree."""
         def run():
-            b = make_builder(seq, "mono", args.keep, n_frames=len(frames), octomap=cfg, stride=args.stride,
-                             predictor=predictor, integrate=integrate, distribution=dcfg)
+            b = make_builder(seq,
+                             MapJob.spec("mono", frames, keep=args.keep, octomap=cfg,
+                                         stride=args.stride, integrate=integrate, distribution=dcfg),
+                             predictor=predictor)
             for i, fi in zip(frames, inputs):
                 b.step(i, fi)
             b.integrator.sync()
         return run
 
     def builds(integrate):
-        return lambda: build_map(seq, "mono", args.keep, frames=frames, octomap=cfg, stride=args.stride,
-                                 predictor=predictor, integrate=integrate, distribution=dcfg, show_progress=False)
+        return lambda: build_map(seq,
+                                 MapJob.spec("mono", frames, keep=args.keep, octomap=cfg, stride=args.stride,
+                                             integrate=integrate, distribution=dcfg),
+                                 predictor=predictor, show_progress=False)
 
     for what, keep_fn, dist_fn in (("map update", updates("keep"), updates("distribution")),
                                    ("whole build", builds("keep"), builds("distribution"))):
@@ -172,14 +178,14 @@ def bench_integrations(args) -> int:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seq", default="00")
-    p.add_argument("--data-root", default=None)
+    add_seq(p)
+    add_data_root(p)
     p.add_argument("--source", default="lidar", choices=["lidar", "lidar-fov", "mono"])
-    p.add_argument("--frames", default="0:20")
+    add_frames(p, default="0:20")
     p.add_argument("--keep", type=float, default=0.8)
     p.add_argument("--stride", type=int, default=1)
-    p.add_argument("--model", default="oracle",
-                   help="mono only: checkpoint, 'shipped' (the shipped model) or 'oracle' (noisy ground truth)")
+    add_model(p, oracle=True, help="mono only: depth checkpoint (default: the shipped binary model; 'shipped' "
+                                   "names it too)")
     p.add_argument("--res", type=float, default=0.2)
     p.add_argument("--numpy", action="store_true", help="also time the numpy DDA (no compiled kernel)")
     p.add_argument("--integrate", action="store_true", help="keep vs distribution integration (see above)")

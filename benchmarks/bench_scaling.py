@@ -185,13 +185,15 @@ def write_report(out: Path, results: dict) -> None:
 
 
 def main() -> int:
+    from mono_map.cli.options import add_data_root, add_out, add_seq
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seq", default="00")
-    ap.add_argument("--data-root", type=Path, required=True)
+    add_seq(ap)
+    add_data_root(ap, required=True, help="KITTI root holding the sequence (its first N frames are built)")
     ap.add_argument("--sizes", default="500,1000,2000,4541", help="comma-separated frame counts (first N frames)")
     ap.add_argument("--sources", default="lidar-fov,mono", help="comma-separated build sources")
     ap.add_argument("--keep", type=float, default=0.8, help="mono keep fraction (default 0.8)")
-    ap.add_argument("--out", type=Path, default=Path("outputs") / "scaling")
+    add_out(ap, default="outputs/scaling")
     ap.add_argument("--nice", type=int, default=0, help="niceness of the build children")
     ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the 1-frame builds")
     ap.add_argument("--wait", action="store_true", help="wait for the data root to hold N frames")
@@ -205,8 +207,8 @@ def main() -> int:
     if not sizes or min(sizes) < 1:
         ap.error(f"--sizes: frame counts must be positive, got {args.sizes!r}")
     sources = [s for s in args.sources.split(",") if s]
-    args.data_root = args.data_root.expanduser()
-    args.out = args.out.expanduser()
+    args.data_root = Path(args.data_root).expanduser()
+    args.out = Path(args.out).expanduser()
     args.out.mkdir(parents=True, exist_ok=True)
     res_path = args.out / "scaling.json"
     results = load_results(res_path)

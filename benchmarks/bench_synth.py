@@ -132,9 +132,12 @@ def preview(seq_dir: Path, index: int, out: Path) -> None:
 
 
 def main() -> int:
+    from mono_map.cli.options import add_frames, add_seq
+    from mono_map.frames import parse_frames
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seq", default="00")
-    ap.add_argument("--frames", type=int, default=40)
+    add_seq(ap, help="recipe name (sequences/NAME.toml) or path to a .toml")
+    add_frames(ap, default="40", what="frames to render (the prefix up to the last one)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--preview", default=None, help="write a preview PNG of frame --frame")
     ap.add_argument("--frame", type=int, default=0)
@@ -157,7 +160,7 @@ def main() -> int:
     print("single frame, 1 thread: " + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in split.items())
           + f" (total {sum(wall.values()) * 1000:.0f} ms wall, {(sum(split.values()) - sum(wall.values())) * 1000:.0f} ms CPU)")
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_synth_"))
-    n = min(args.frames, recipe.frames)
+    n = min(parse_frames(args.frames).needed() or recipe.frames, recipe.frames)
     if args.compare and not (Path(args.compare) / "sequences" / recipe.name).is_dir():
         ap.error(f"--compare: {Path(args.compare) / 'sequences' / recipe.name}: no such sequence directory")
     t0 = time.perf_counter()

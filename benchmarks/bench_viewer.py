@@ -37,14 +37,15 @@ class CountingObserver:
 
 
 def main(argv=None) -> int:
+    from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seq", default="00")
-    ap.add_argument("--data-root", default=None)
-    ap.add_argument("--frames", default="0:20", help="the --frames grammar (default 0:20)")
+    add_seq(ap)
+    add_data_root(ap)
+    add_frames(ap, default="0:20")
     ap.add_argument("--source", default="lidar-fov", help="mono | lidar | lidar-fov (default lidar-fov)")
     ap.add_argument("--keep", type=float, default=0.8)
-    ap.add_argument("--model", default=None,
-                    help="mono only: checkpoint (default: shipped) or 'oracle' (noisy ground truth, no model)")
+    add_model(ap, oracle=True, help="mono only: depth checkpoint (default: the shipped binary model)")
     ap.add_argument("--repeats", type=int, default=3, help="alternating pairs (default 3)")
     ap.add_argument("--map-every", type=int, default=1)
     ap.add_argument("--json", default=None, help="also write the results here")
@@ -56,6 +57,7 @@ def main(argv=None) -> int:
     from mono_map.data.prepare import prepare_sequence
     from mono_map.frames import parse_frames
     from mono_map.mapping.pipeline import build_map
+    from mono_map.mapping.jobs import MapJob
     from mono_map.viz.rerun_stream import RerunMapLogger
     from mono_map.viz.stream_options import StreamOptions
 
@@ -82,7 +84,7 @@ def main(argv=None) -> int:
                                     options=StreamOptions(map_every=args.map_every, image_size=seq.image_size))
             obs.append(logger)  # build_map closes its observers (the .rrd is complete on return)
         t0, c0 = time.perf_counter(), time.process_time()
-        build_map(seq, source=args.source, keep=args.keep, frames=frames, observers=obs, show_progress=False,
+        build_map(seq, MapJob.spec(args.source, frames, keep=args.keep), observers=obs, show_progress=False,
                   predictor=predictor)
         dt, dc = time.perf_counter() - t0, time.process_time() - c0
         info["cpu_s"] = dc

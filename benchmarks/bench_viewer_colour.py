@@ -49,10 +49,13 @@ def with_probabilities(updates, resolution: float, free_cells: int, seed: int = 
 
 
 def main(argv=None) -> int:
+    from mono_map.cli.options import add_data_root, add_frames, add_seq
+    from mono_map.frames import parse_frames
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seq", default="00")
-    ap.add_argument("--data-root", default=None)
-    ap.add_argument("--frames", default="0:20", help="a:b frame range (default 0:20)")
+    add_seq(ap)
+    add_data_root(ap)
+    add_frames(ap, default="0:20")
     ap.add_argument("--source", default="lidar-fov", help="mono | lidar | lidar-fov (default lidar-fov)")
     ap.add_argument("--repeats", type=int, default=3, help="alternating pairs (default 3)")
     ap.add_argument("--free-cells", type=int, default=200_000, help="free cells per frame in the update")
@@ -60,13 +63,17 @@ def main(argv=None) -> int:
 
     from mono_map.data.kitti import open_sequence
     from mono_map.mapping.pipeline import build_map
+    from mono_map.mapping.jobs import MapJob
     from mono_map.viz.rerun_stream import RerunMapLogger
     from mono_map.viz.stream_options import StreamOptions
 
-    a, b = (int(x) for x in args.frames.split(":"))
+    sel = parse_frames(args.frames)
+    if sel.indices is not None or sel.step != 1 or sel.stop is None:
+        ap.error(f"--frames: a range A:B of frames, got {args.frames!r}")
+    a, b = sel.start, sel.stop
     seq = open_sequence(args.data_root, args.seq, frames=b)
     updates = []
-    build_map(seq, source=args.source, frames=range(a, b), observers=[lambda u: updates.append(copy.deepcopy(u))],
+    build_map(seq, MapJob.spec(args.source, range(a, b)), observers=[lambda u: updates.append(copy.deepcopy(u))],
               show_progress=False)
     res = 0.2
     prob_updates = with_probabilities(updates, res, args.free_cells)

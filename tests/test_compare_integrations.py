@@ -60,13 +60,14 @@ def test_max_range_sweep_builds_each_keep_map_per_range(tiny_root, tmp_path):
     from mono_map.data.kitti import open_sequence
     from mono_map.eval.map_metrics import surface_precision
     from mono_map.mapping.pipeline import build_map
+    from mono_map.mapping.jobs import MapJob
     from mono_map.mapping.oracle import NoisyGroundTruthPredictor
     from mono_map.mapping.octree import tree_leaves
 
     seq = open_sequence(tiny_root, "tiny")
-    plain = build_map(seq, "mono", 0.8, frames=[0, 1, 2], predictor=NoisyGroundTruthPredictor(),
-                      octomap=OctoMapConfig(max_range=8.0), show_progress=False)
-    surf = build_map(seq, "depth-gt", frames=[0, 1, 2], show_progress=False)
+    plain = build_map(seq, MapJob.spec("mono", [0, 1, 2], keep=0.8, octomap=OctoMapConfig(max_range=8.0)),
+                      predictor=NoisyGroundTruthPredictor(), show_progress=False)
+    surf = build_map(seq, MapJob.spec("depth-gt", [0, 1, 2]), show_progress=False)
     s = surface_precision(tree_leaves(plain.tree), tree_leaves(surf.tree))
     assert s["occupied_cells"] == rows["mono keep 0.8, max range 8 m"]["occupied_cells"]
     assert np.isclose(s["surface_precision"], rows["mono keep 0.8, max range 8 m"]["surface_precision"])

@@ -154,15 +154,17 @@ def leaves_of(result):
 @pytest.mark.parametrize("source", ["lidar-fov", "lidar", "depth-gt", "mono"])
 def test_maps_cell_for_cell(exact_root, source):
     from mono_map.config import OctoMapConfig
+    from mono_map.mapping.jobs import MapJob
     from mono_map.mapping.pipeline import build_map
     from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 
     out = []
     for name in ("tiny", DRIVE):
         seq = open_sequence(exact_root, name)
-        kw = dict(predictor=NoisyGroundTruthPredictor(), stride=4) if source == "mono" else {}
-        out.append(leaves_of(build_map(seq, source, 0.8, frames=range(6), octomap=OctoMapConfig(resolution=0.2),
-                                       show_progress=False, **kw)))
+        mono = source == "mono"
+        job = MapJob.spec(source, range(6), keep=0.8, octomap=OctoMapConfig(resolution=0.2), stride=4 if mono else 1)
+        out.append(leaves_of(build_map(seq, job, predictor=NoisyGroundTruthPredictor() if mono else None,
+                                       show_progress=False)))
     (s0, l0, o0), (s1, l1, o1) = out
     assert l0.sum() > 1000
     assert np.array_equal(s0, s1) and np.array_equal(l0, l1) and np.array_equal(o0, o1)

@@ -18,7 +18,8 @@ from mono_map.depth.inference import DepthPrediction
 from mono_map.errors import MonoMapError
 from mono_map.mapping.pipeline import build_map
 from mono_map.mapping.integrate import MapIntegrator
-from mono_map.mapping.jobs import MapJob, build_and_write, reusable
+from mono_map.mapping.jobs import MapJob, reusable
+from mono_map.mapping.publish import build_and_write
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 from mono_map.mapping import points
 from mono_map.mapping.points import camera_origin, in_camera_fov, lidar_to_world, pixels_to_world
@@ -176,8 +177,8 @@ def test_build_ranked_by_metric_keeps_nearer_points(tiny_root):
     kept = {}
     for rank in ("entropy", "metric"):
         rec = Recorder()
-        b = make_builder(seq, "mono", 0.5, n_frames=1, predictor=NoisyGroundTruthPredictor(), rank=rank,
-                         observers=[rec])
+        b = make_builder(seq, MapJob.spec("mono", range(1), keep=0.5), predictor=NoisyGroundTruthPredictor(),
+                         rank=rank, observers=[rec])
         run_builders(seq, [b], [0], show_progress=False)
         kept[rank] = rec.updates[0]
     dist = {r: np.linalg.norm(u.points_world - u.origin, axis=1) for r, u in kept.items()}
@@ -199,8 +200,8 @@ class Recorder:
 def test_build_mono_oracle_observers(tiny_root):
     seq = open_sequence(tiny_root, "tiny")
     rec = Recorder()
-    res = build_map(seq, "mono", 0.5, frames=range(0, 2), stride=4, predictor=NoisyGroundTruthPredictor(),
-                    observers=[rec], show_progress=False)
+    res = build_map(seq, MapJob.spec("mono", range(0, 2), keep=0.5, stride=4),
+                    predictor=NoisyGroundTruthPredictor(), observers=[rec], show_progress=False)
     assert rec.closed and [u.index for u in rec.updates] == [0, 1]
     u = rec.updates[0]
     assert u.keep_mask.shape == seq.image_size and u.depth.shape == seq.image_size
@@ -325,7 +326,7 @@ def test_bad_predictions(tiny_root, kind, message):
     seq = open_sequence(tiny_root, "tiny")
     rec = Recorder()
     with pytest.raises(MonoMapError, match=message):
-        build_map(seq, "mono", 0.8, frames=range(0, 1), predictor=BadPredictor(kind), observers=[rec],
+        build_map(seq, MapJob.spec("mono", range(0, 1), keep=0.8), predictor=BadPredictor(kind), observers=[rec],
                   show_progress=False)
     assert rec.closed
 
@@ -429,8 +430,8 @@ class SkyTopPredictor:
 def test_build_never_inserts_beyond_range_pixels(tiny_root):
     seq = open_sequence(tiny_root, "tiny")
     rec = Recorder()
-    build_map(seq, "mono", 0.5, frames=range(0, 1), stride=4, predictor=SkyTopPredictor(), observers=[rec],
-              show_progress=False)
+    build_map(seq, MapJob.spec("mono", range(0, 1), keep=0.5, stride=4), predictor=SkyTopPredictor(),
+              observers=[rec], show_progress=False)
     mask = rec.updates[0].keep_mask
     h = mask.shape[0] // 2
     assert mask.any() and not mask[:h].any()
@@ -452,17 +453,18 @@ class CountingOracle(NoisyGroundTruthPredictor):
 
 def test_maps_of_one_pass_equal_maps_built_alone_and_predict_once(tiny_root, tmp_path):
     from mono_map.mapping.pipeline import build_maps
-    from mono_map.mapping.jobs import MapRequest, build_and_write_all
+    from mono_map.mapping.publish import MapRequest, build_and_write_all
     from mono_map.mapping.octree import tree_leaves
 
     seq = open_sequence(tiny_root, "tiny")
-    specs = [dict(source="mono", keep=1.0, stride=4), dict(source="mono", keep=0.5, stride=4),
-             dict(source="mono", integrate="distribution", stride=4), dict(source="lidar-fov")]
+    frames = range(0, 3)
+    specs = [MapJob.spec("mono", frames, keep=1.0, stride=4), MapJob.spec("mono", frames, keep=0.5, stride=4),
+             MapJob.spec("mono", frames, integrate="distribution", stride=4), MapJob.spec("lidar-fov", frames)]
     shared = CountingOracle()
-    together = build_maps(seq, [dict(s, predictor=shared) for s in specs], frames=range(0, 3), show_progress=False)
+    together = build_maps(seq, [dict(job=s, predictor=shared) for s in specs], show_progress=False)
     assert shared.calls == [(0, True), (1, True), (2, True)]     # one prediction per frame for three mono maps
     for spec, res in zip(specs, together):
-        alone = build_map(seq, frames=range(0, 3), predictor=NoisyGroundTruthPredictor(), show_progress=False, **spec)
+        alone = build_map(seq, spec, predictor=NoisyGroundTruthPredictor(), show_progress=False)
         a, b = tree_leaves(res.tree), tree_leaves(alone.tree)
         assert np.array_equal(a.start, b.start) and np.array_equal(a.length, b.length), spec
         assert np.array_equal(a.value, b.value) and a.occupied.any(), spec
@@ -489,7 +491,7 @@ def test_a_rename_failing_in_a_pass_publishes_none_of_its_maps(tiny_root, tmp_pa
     neither map (whichever files were renamed already are removed again)."""
     import os
 
-    from mono_map.mapping.jobs import MapRequest, build_and_write_all
+    from mono_map.mapping.publish import MapRequest, build_and_write_all
 
     seq = open_sequence(tiny_root, "tiny")
     jobs = [MapJob.of(seq, "lidar-fov", range(0, 2)), MapJob.of(seq, "lidar", range(0, 2))]
@@ -533,14 +535,14 @@ def test_look_ahead_prediction_gives_the_frame_by_frame_maps(tiny_root):
     from mono_map.mapping.octree import tree_leaves
 
     seq = open_sequence(tiny_root, "tiny")
-    specs = [dict(source="mono", keep=1.0, stride=4), dict(source="mono", keep=0.5, stride=4)]
     frames = [0, 1, 2, 3]
+    specs = [MapJob.spec("mono", frames, keep=1.0, stride=4), MapJob.spec("mono", frames, keep=0.5, stride=4)]
     ahead = ThreadRecordingOracle()
-    piped = make_builders(seq, [dict(s, predictor=ahead) for s in specs], len(frames))
+    piped = make_builders(seq, [dict(job=s, predictor=ahead) for s in specs])
     run_builders(seq, piped, frames, show_progress=False)
     assert sorted(ahead.threads) == frames
     assert all(name != threading.main_thread().name for name in ahead.threads.values())
-    plain = make_builders(seq, [dict(s, predictor=NoisyGroundTruthPredictor()) for s in specs], len(frames))
+    plain = make_builders(seq, [dict(job=s, predictor=NoisyGroundTruthPredictor()) for s in specs])
     for i in frames:
         for b in plain:
             b.step(i)              # no shared inputs: predicts in this thread, frame by frame
@@ -549,7 +551,7 @@ def test_look_ahead_prediction_gives_the_frame_by_frame_maps(tiny_root):
         assert np.array_equal(a.start, b.start) and np.array_equal(a.value, b.value) and a.occupied.any()
 
     failing, rec = ThreadRecordingOracle(fail_at=2), Recorder()
-    builders = make_builders(seq, [dict(specs[0], predictor=failing, observers=[rec])], len(frames))
+    builders = make_builders(seq, [dict(job=specs[0], predictor=failing, observers=[rec])])
     with pytest.raises(MonoMapError, match="frame 2: predictor failed"):
         run_builders(seq, builders, frames, show_progress=False)
     assert sorted(failing.threads) == [0, 1, 2] and rec.closed
@@ -564,12 +566,12 @@ def test_maps_built_in_threads_at_once_equal_maps_built_alone(tiny_root):
     from mono_map.mapping.octree import tree_leaves
 
     seq = open_sequence(tiny_root, "tiny")
-    specs = [dict(source="mono", keep=1.0), dict(source="mono", integrate="distribution"),
-             dict(source="mono", keep=0.5), dict(source="lidar")]
     frames = range(0, 4)
+    specs = [MapJob.spec("mono", frames, keep=1.0), MapJob.spec("mono", frames, integrate="distribution"),
+             MapJob.spec("mono", frames, keep=0.5), MapJob.spec("lidar", frames)]
 
     def build(spec):
-        res = build_map(seq, frames=frames, predictor=NoisyGroundTruthPredictor(), show_progress=False, **spec)
+        res = build_map(seq, spec, predictor=NoisyGroundTruthPredictor(), show_progress=False)
         return tree_leaves(res.tree)
 
     alone = [build(s) for s in specs]

@@ -353,8 +353,9 @@ class WallSequence:
 
 def test_depth_gt_map_of_a_hand_built_wall():
     from mono_map.mapping.pipeline import build_map
+    from mono_map.mapping.jobs import MapJob
 
-    res = build_map(WallSequence(), "depth-gt", show_progress=False)
+    res = build_map(WallSequence(), MapJob.spec("depth-gt"), show_progress=False)
     leaves = tree_leaves(res.tree)
     codes, leaf = leaves.expand()
     from mono_map.mapping.octree import morton_to_keys
@@ -371,13 +372,15 @@ def test_oracle_distribution_build_with_an_observer(tiny_root):
     """The whole build path on the oracle's distributions: observers get every frame, cells become occupied."""
     from mono_map.data.kitti import open_sequence
     from mono_map.mapping.pipeline import build_map
+    from mono_map.mapping.jobs import MapJob
     from mono_map.mapping.distribution import DistributionConfig
     from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 
     seq = open_sequence(tiny_root, "tiny")
     seen = []
-    res = build_map(seq, "mono", frames=range(0, 2), stride=2, integrate="distribution",
-                    distribution=DistributionConfig(eps=0.1, ray_step=2),
+    res = build_map(seq,
+                    MapJob.spec("mono", range(0, 2), stride=2, integrate="distribution",
+                                distribution=DistributionConfig(eps=0.1, ray_step=2)),
                     predictor=NoisyGroundTruthPredictor(sigma=0.01, edge_sigma=0.0), observers=[seen.append],
                     show_progress=False)
     assert len(seen) == 2 and len(seen[0].occupied_keys_changed) > 0
@@ -389,6 +392,7 @@ def test_heads_without_probabilities_are_one_clear_error(tiny_root):
     from mono_map.data.kitti import open_sequence
     from mono_map.depth.inference import DepthPrediction
     from mono_map.mapping.pipeline import build_map
+    from mono_map.mapping.jobs import MapJob
 
     class NoProbs:
         def predict(self, image, with_probs=False, probs_step=1):
@@ -397,7 +401,7 @@ def test_heads_without_probabilities_are_one_clear_error(tiny_root):
 
     seq = open_sequence(tiny_root, "tiny")
     with pytest.raises(MonoMapError, match="no bin probabilities"):
-        build_map(seq, "mono", frames=range(0, 1), integrate="distribution", predictor=NoProbs(),
+        build_map(seq, MapJob.spec("mono", range(0, 1), integrate="distribution"), predictor=NoProbs(),
                   show_progress=False)
 
 
@@ -474,6 +478,7 @@ def test_probability_colouring_observers_get_updated_cells(tiny_root, integrate)
     the probability the final tree holds for them (last frame); without one, none are computed."""
     from mono_map.data.kitti import open_sequence
     from mono_map.mapping.pipeline import build_map
+    from mono_map.mapping.jobs import MapJob
     from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 
     class Recorder(list):
@@ -486,7 +491,7 @@ def test_probability_colouring_observers_get_updated_cells(tiny_root, integrate)
 
     seq = open_sequence(tiny_root, "tiny")
     prob, height = Recorder("probability"), Recorder("height")
-    res = build_map(seq, "mono", 1.0, frames=range(0, 2), stride=2, integrate=integrate,
+    res = build_map(seq, MapJob.spec("mono", range(0, 2), keep=1.0, stride=2, integrate=integrate),
                     predictor=NoisyGroundTruthPredictor(sigma=0.01, edge_sigma=0.0), observers=[prob, height],
                     show_progress=False)
     last = prob[-1]
@@ -498,7 +503,7 @@ def test_probability_colouring_observers_get_updated_cells(tiny_root, integrate)
         assert abs(node.getOccupancy() - last.updated_probability[j]) < 1e-5
     assert height[-1] is last                                       # one update object for every observer
     alone = Recorder("height")
-    build_map(seq, "mono", 1.0, frames=range(0, 1), stride=2, integrate=integrate, observers=[alone],
+    build_map(seq, MapJob.spec("mono", range(0, 1), keep=1.0, stride=2, integrate=integrate), observers=[alone],
               predictor=NoisyGroundTruthPredictor(sigma=0.01, edge_sigma=0.0), show_progress=False)
     assert alone[0].updated_cells is None and alone[0].updated_probability is None
 
@@ -679,6 +684,7 @@ def test_oracle_probabilities_at_a_pixel_step_are_its_full_maps_there(tiny_root)
 def test_probabilities_at_a_step_the_rays_cannot_use_are_one_clear_error(tiny_root):
     from mono_map.data.kitti import open_sequence
     from mono_map.mapping.pipeline import build_map
+    from mono_map.mapping.jobs import MapJob
     from mono_map.mapping.distribution import DistributionConfig
     from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 
@@ -688,13 +694,17 @@ def test_probabilities_at_a_step_the_rays_cannot_use_are_one_clear_error(tiny_ro
 
     seq = open_sequence(tiny_root, "tiny")
     with pytest.raises(MonoMapError, match="every 3 pixels cannot serve rays every 2"):
-        build_map(seq, "mono", frames=range(0, 1), integrate="distribution", predictor=EveryThird(),
-                  distribution=DistributionConfig(ray_step=2), show_progress=False)
+        build_map(seq,
+                  MapJob.spec("mono", range(0, 1), integrate="distribution",
+                              distribution=DistributionConfig(ray_step=2)),
+                  predictor=EveryThird(), show_progress=False)
     # rays every 6th pixel are served by probabilities every 3rd: the same map as from full-resolution ones
     maps = []
     for pred in (EveryThird(), NoisyGroundTruthPredictor()):
-        r = build_map(seq, "mono", frames=range(0, 2), integrate="distribution", predictor=pred,
-                      distribution=DistributionConfig(ray_step=6), show_progress=False)
+        r = build_map(seq,
+                      MapJob.spec("mono", range(0, 2), integrate="distribution",
+                                  distribution=DistributionConfig(ray_step=6)),
+                      predictor=pred, show_progress=False)
         maps.append(tree_cells(r.tree))
     assert len(maps[0]) > 100 and maps[0] == maps[1]
 

@@ -9,6 +9,7 @@ from mono_map.config import OctoMapConfig
 from mono_map.depth.bins import DepthBins
 from mono_map.depth.inference import DepthPrediction
 from mono_map.errors import MonoMapError
+from mono_map.mapping.jobs import MapJob
 from mono_map.mapping.pipeline import build_map
 from mono_map.mapping.distribution import DistributionConfig
 from mono_map.mapping.fused import FusedConfig, SurfaceFusion, check_fused_config, log_spread, pixel_weights
@@ -106,13 +107,13 @@ DCFG = DistributionConfig(ray_step=1, temperature=1.0)
 
 
 def fused_build(seq, predictor, frames, fcfg=FusedConfig(), dcfg=DCFG, observers=()):
-    return build_map(seq, "mono", frames=frames, integrate="fused", predictor=predictor, distribution=dcfg,
-                     fused=fcfg, observers=observers, show_progress=False)
+    return build_map(seq, MapJob.spec("mono", frames, integrate="fused", distribution=dcfg, fused=fcfg),
+                     predictor=predictor, observers=observers, show_progress=False)
 
 
 def test_exact_depth_gives_the_depth_gt_surface_within_one_cell():
     seq = Seq(6)
-    gt = build_map(seq, "depth-gt", frames=range(6), show_progress=False)
+    gt = build_map(seq, MapJob.spec("depth-gt", range(6)), show_progress=False)
     fused = fused_build(seq, LogNormalPredictor(seq.depth, 1e-4), range(6), FusedConfig(min_weight=1.0))
     a, b = occupied_keys_of(fused.tree), occupied_keys_of(gt.tree)
     assert len(a) > 500
@@ -165,7 +166,7 @@ def test_surface_cells_are_never_freed_by_rays_that_end_on_them():
     """One frame of exact depth: every cell a snapped ray ends in is occupied (the free half's own rays, which
     also end there, never free it) and lies on the true surface (the depth-gt map's end cells)."""
     seq = Seq(1)
-    gt = build_map(seq, "depth-gt", frames=range(1), show_progress=False)
+    gt = build_map(seq, MapJob.spec("depth-gt", range(1)), show_progress=False)
     fused = fused_build(seq, LogNormalPredictor(seq.depth, 1e-4), range(1), FusedConfig(min_weight=0.5))
     occ = occupied_keys_of(fused.tree)
     assert len(occ) > 300
@@ -175,7 +176,7 @@ def test_surface_cells_are_never_freed_by_rays_that_end_on_them():
 
 def test_point_masses_through_the_free_half_give_the_keep_1_free_cells():
     seq = Seq(3)
-    keep = build_map(seq, "depth-gt", frames=range(3), show_progress=False)      # keep 1.0 of the exact depth
+    keep = build_map(seq, MapJob.spec("depth-gt", range(3)), show_progress=False)      # keep 1.0 of the exact depth
     dcfg = DistributionConfig(ray_step=1, temperature=1.0, quantum=0.0, snap_free=False, min_update=0.0)
 
     class PointMass(LogNormalPredictor):

@@ -12,6 +12,7 @@ from mono_map.config import OctoMapConfig
 from mono_map.data.kitti import open_sequence
 from mono_map.errors import MonoMapError
 from mono_map.mapping import kernel_threads, raycast, raycast_c
+from mono_map.mapping.jobs import MapJob
 from mono_map.mapping.nested import compute_nested_updates
 from mono_map.mapping.pipeline import build_map, build_maps, make_builders, share_ray_casts
 from mono_map.mapping.octree import morton_codes, tree_leaves
@@ -78,12 +79,15 @@ def test_share_ray_casts_groups_only_keep_maps_that_see_the_same_pixels(tiny_roo
     seq = open_sequence(tiny_root, "tiny")
     oracle, other = NoisyGroundTruthPredictor(), NoisyGroundTruthPredictor()
     limited = dataclasses.replace(OctoMapConfig(), max_range=20.0)
-    maps = [dict(keep=0.5, predictor=oracle), dict(keep=1.0, predictor=oracle), dict(keep=0.8, predictor=oracle),
-            dict(keep=0.5, predictor=oracle, rank="metric"),              # another ranking: alone
-            dict(keep=0.7, predictor=oracle, octomap=limited),            # a range limit: alone
-            dict(keep=0.6, predictor=other),                              # another prediction: alone
-            dict(integrate="distribution", predictor=oracle), dict(source="lidar-fov")]
-    builders = make_builders(seq, [dict(m, source=m.get("source", "mono"), stride=4) for m in maps], n_frames=2)
+    def mono(predictor=oracle, **settings):
+        return dict(job=MapJob.spec("mono", range(2), stride=4, **settings), predictor=predictor)
+
+    maps = [mono(keep=0.5), mono(keep=1.0), mono(keep=0.8),
+            dict(mono(keep=0.5), rank="metric"),                          # another ranking: alone
+            mono(keep=0.7, octomap=limited),                              # a range limit: alone
+            mono(other, keep=0.6),                                        # another prediction: alone
+            mono(integrate="distribution"), dict(job=MapJob.spec("lidar-fov", range(2), stride=4))]
+    builders = make_builders(seq, maps)
     share_ray_casts(builders)
     groups = [b.group for b in builders]
     assert groups[0] is not None and groups[0] == groups[1] == groups[2]
@@ -94,11 +98,11 @@ def test_share_ray_casts_groups_only_keep_maps_that_see_the_same_pixels(tiny_roo
 def test_grouped_keep_maps_equal_maps_built_alone(tiny_root):
     seq = open_sequence(tiny_root, "tiny")
     keeps = (0.3, 1.0, 0.6)
-    together = build_maps(seq, [dict(source="mono", keep=k, stride=2, predictor=NoisyGroundTruthPredictor())
-                                for k in keeps], frames=range(0, 3), show_progress=False)
+    together = build_maps(seq, [dict(job=MapJob.spec("mono", range(0, 3), keep=k, stride=2),
+                                     predictor=NoisyGroundTruthPredictor()) for k in keeps], show_progress=False)
     for k, res in zip(keeps, together):
-        alone = build_map(seq, "mono", k, frames=range(0, 3), stride=2, predictor=NoisyGroundTruthPredictor(),
-                          show_progress=False)
+        alone = build_map(seq, MapJob.spec("mono", range(0, 3), keep=k, stride=2),
+                          predictor=NoisyGroundTruthPredictor(), show_progress=False)
         a, b = tree_leaves(res.tree), tree_leaves(alone.tree)
         assert np.array_equal(a.start, b.start) and np.array_equal(a.value, b.value) and a.occupied.any(), k
         for key in ("points_kept", "rays_cast", "memory_bytes", "leaf_count"):

@@ -6,7 +6,7 @@ import time
 import pytest
 
 from mono_map.errors import MonoMapError
-from mono_map.viz.commands import screenshot_xvfb
+from mono_map.viz.screenshot import screenshot_xvfb
 
 
 def test_xvfb_screenshot_timeout_kills_the_whole_process_group(tmp_path, monkeypatch):

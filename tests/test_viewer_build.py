@@ -13,13 +13,14 @@ from rrd_readback import map_cells_at, read_recording
 def test_short_build_writes_recording_with_expected_paths_and_frames(tiny_root, tmp_path):
     from mono_map.data.kitti import open_sequence
     from mono_map.mapping.pipeline import build_map
+    from mono_map.mapping.jobs import MapJob
     from mono_map.mapping.octree import write_tree_bt
 
     seq = open_sequence(tiny_root, "tiny")
     frames = list(range(min(4, len(seq))))
     rrd = tmp_path / "build.rrd"
     logger = RerunMapLogger(rrd=rrd, options=StreamOptions(resolution=0.2, image_size=seq.image_size))
-    result = build_map(seq, source="lidar-fov", frames=frames, observers=[logger], show_progress=False)
+    result = build_map(seq, MapJob.spec("lidar-fov", frames), observers=[logger], show_progress=False)
     assert rrd.is_file(), "build_map closes its observers: the recording must be complete"
 
     rows = read_recording(rrd)

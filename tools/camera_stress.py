@@ -50,13 +50,14 @@ def stress(model, frames, conditions=CONDITIONS) -> dict:
 
 
 def main(argv=None) -> int:
-    from mono_map.depth.inference import default_checkpoint, load_checkpoint
+    from mono_map.cli.options import add_model
+    from mono_map.depth.inference import load_checkpoint, resolve_checkpoint
     from mono_map.depth.train_config import DataConfig
     from mono_map.errors import MonoMapError
     from mono_map.eval.validation import validation_frames
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", action="append", default=None, help="checkpoint path or shipped name (repeat)")
+    add_model(ap, repeat=True)
     ap.add_argument("--frames", type=int, default=24, help="val09 frames (every 10th, as the training validates)")
     ap.add_argument("--trainset", default="default", help="training cache (default ~/.cache/mono-map/trainset)")
     ap.add_argument("--json", default=None, help="also write the numbers here")
@@ -65,7 +66,7 @@ def main(argv=None) -> int:
         if a.frames < 1:
             raise MonoMapError(f"--frames: must be >= 1, got {a.frames}")
         models = a.model or ["binary"]
-        paths = [Path(m).expanduser() if Path(m).expanduser().is_file() else default_checkpoint(m) for m in models]
+        paths = [resolve_checkpoint(Path(m).expanduser()) for m in models]
         for m, p in zip(models, paths):
             if not p.is_file():
                 raise MonoMapError(f"--model: {m}: checkpoint not found")

@@ -26,6 +26,7 @@ import itertools
 import sys
 from pathlib import Path
 
+from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq  # noqa: E402
 from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
 from mono_map.eval.map_metrics import calibration, compare_leaves, surface_precision  # noqa: E402
@@ -44,7 +45,7 @@ def reference_leaves(seq, source: str, frames, cfg, refs: Path | None):
     bt = MapJob(seq.name, None, source, tuple(frames), octomap=cfg).path(refs) if refs is not None else None
     if bt is not None and bt.exists():
         return tree_leaves(load_tree(bt))
-    return tree_leaves(build_map(seq, source, frames=frames, octomap=cfg, show_progress=False).tree)
+    return tree_leaves(build_map(seq, MapJob.spec(source, frames, octomap=cfg), show_progress=False).tree)
 
 
 def parse_max_ranges(text: str) -> list[float]:
@@ -65,12 +66,12 @@ def parse_max_ranges(text: str) -> list[float]:
 def main(argv=None) -> int:
     d = DistributionConfig()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seq", default="05")
-    p.add_argument("--frames", default="0:60")
-    p.add_argument("--model", default="shipped", help="'shipped', 'oracle' or a checkpoint")
+    add_seq(p, default="05")
+    add_frames(p, default="0:60")
+    add_model(p, oracle=True)
     p.add_argument("--oracle-sigma", type=float, default=None,
                    help="with --model oracle: its log-depth noise on smooth surfaces (default 0.03)")
-    p.add_argument("--data-root", default=None)
+    add_data_root(p)
     p.add_argument("--keeps", default="0.8,1.0")
     p.add_argument("--tune", action="store_true", help="a grid: --eps x --min-update x --ray-step x --temperature")
     p.add_argument("--eps", default=str(d.eps))
@@ -106,7 +107,7 @@ def main(argv=None) -> int:
     frames = selection.resolve(len(seq))
     desc = selection.describe(frames)
     refs = Path(args.refs) if args.refs else None
-    print(f"sequence {args.seq}, {desc}, model {args.model}, prob_hit {cfg.prob_hit}, prob_miss {cfg.prob_miss}",
+    print(f"sequence {args.seq}, {desc}, model {args.model or 'shipped'}, prob_hit {cfg.prob_hit}, prob_miss {cfg.prob_miss}",
           flush=True)
     ref = reference_leaves(seq, "lidar-fov", frames, OctoMapConfig(), refs)    # references: default sensor model
     surf = reference_leaves(seq, "depth-gt", frames, OctoMapConfig(), refs)
@@ -120,7 +121,7 @@ def main(argv=None) -> int:
                                                          args.ray_step.split(","), args.temperature.split(","),
                                                          args.bin_spread.split(","), args.quantum.split(","),
                                                          args.snap_free.split(","))]
-    cands = {}   # name -> build_map keyword arguments; one builder each, all fed from one prediction per frame
+    cands = {}   # name -> the map's settings (MapJob.spec) and rank; one builder each, fed from one prediction per frame
     for r in max_ranges:
         octomap = dataclasses.replace(cfg, max_range=r)
         tag = "" if r < 0 else f", max range {r:g} m"
@@ -134,8 +135,10 @@ def main(argv=None) -> int:
                 f"dist eps {g.eps:g} min {g.min_update:g} step {g.ray_step} T {g.temperature:g} "
                 f"spread {g.bin_spread:g} q {g.quantum:g}" + (" snap" if g.snap_free else ""))
             cands[name + tag] = dict(integrate="distribution", distribution=g, octomap=octomap)
-    builders = make_builders(seq, [dict(kw, source="mono", predictor=predictor, stats_every=10**9)
-                                   for kw in cands.values()], len(frames))
+    settings = [{k: v for k, v in kw.items() if k != "rank"} for kw in cands.values()]
+    builders = make_builders(seq, [dict(job=MapJob.spec("mono", frames, **s), rank=kw.get("rank", "entropy"),
+                                        predictor=predictor, stats_every=10**9)
+                                   for s, kw in zip(settings, cands.values())])
     run_builders(seq, builders, frames)
     rows, reliability = [], {}
     for name, kw in cands.items():
@@ -172,7 +175,7 @@ def main(argv=None) -> int:
 
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        stem = f"compare_{args.seq}_{frames_tag(frames)}_{Path(args.model).stem}" + (
+        stem = f"compare_{args.seq}_{frames_tag(frames)}_{Path(args.model or 'shipped').stem}" + (
             f"_sigma{args.oracle_sigma:g}" if args.oracle_sigma is not None else "")
         write_text_atomic(out / f"{stem}.md", md)
         write_json_atomic(out / f"{stem}.json", {"sequence": args.seq, "frames": [frames[0], frames[-1] + 1],

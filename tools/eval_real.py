@@ -105,15 +105,16 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from mono_map.cli.options import add_model, add_out, add_threads
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", action="append", default=None,
-                    help="checkpoint path or shipped name; repeat for several (default: binary)")
+    add_model(ap, repeat=True)
     ap.add_argument("--real-root", default=str(DEFAULT_REAL_ROOT), help="the kitti_real folder (default ../shared/kitti_real)")
     ap.add_argument("--real01-frames", default="0:78:2", help="frames of real01 (default every 2nd: 0:78:2)")
     ap.add_argument("--seq", action="append", default=[], help="another real sequence as ROOT:NAME:FRAMES (repeatable)")
     ap.add_argument("--only", action="append", default=None, help="evaluate only the sources with these names")
-    ap.add_argument("--out", default="outputs/eval_real")
-    ap.add_argument("--threads", type=int, default=1)
+    add_out(ap, default="outputs/eval_real")
+    add_threads(ap, default=1)
     ap.add_argument("--fast", action="store_true", help="statistics at the decoder's stride 4")
     args = ap.parse_args(argv)
 

@@ -56,13 +56,15 @@ def depth_rows(seq, frames: list[int], models: list[tuple[str, object]], width: 
 
 
 def main(argv: list[str] | None = None) -> int:
+    from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="what", required=True)
     d = sub.add_parser("depth")
-    d.add_argument("--data-root", required=True)
-    d.add_argument("--seq", required=True)
-    d.add_argument("--frames", required=True, help="I,J,... frame indices")
-    d.add_argument("--model", action="append", required=True)
+    add_data_root(d)
+    add_seq(d, required=True)
+    add_frames(d, default="0", what="frames to show")
+    add_model(d, repeat=True)
     d.add_argument("--label", action="append", default=None)
     d.add_argument("--out", required=True, help="picture (.png or .jpg)")
     t = sub.add_parser("topdown")
@@ -83,12 +85,15 @@ def main(argv: list[str] | None = None) -> int:
             from mono_map.data.kitti import open_sequence
             from mono_map.depth.inference import DepthPredictor
 
-            labels = args.label or args.model
-            if len(labels) != len(args.model):
+            from mono_map.frames import parse_frames
+
+            names = args.model or [None]                  # None: the shipped binary model
+            labels = args.label or [m or "binary" for m in names]
+            if len(labels) != len(names):
                 raise MonoMapError("--label: give one per --model")
             seq = open_sequence(args.data_root, args.seq)
-            frames = [int(x) for x in args.frames.split(",")]
-            models = [(lab, DepthPredictor.load(m)) for lab, m in zip(labels, args.model)]
+            frames = parse_frames(args.frames).resolve(len(seq))
+            models = [(lab, DepthPredictor.load(m)) for lab, m in zip(labels, names)]
             pic = depth_rows(seq, frames, models)
             with atomic_path(args.out) as tmp:
                 ext = ".jpg" if str(args.out).lower().endswith(".jpg") else ".png"

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq
 from mono_map.data.prepare import prepare_sequence
 from mono_map.depth.inference import DepthPredictor
 from mono_map.frames import parse_frames
@@ -19,10 +20,10 @@ from mono_map.viz.plots import figure
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seq", default="00")
-    ap.add_argument("--data-root", default=None)
-    ap.add_argument("--frames", default="0,250")
-    ap.add_argument("--model", default=None, help="checkpoint path or shipped name (default: the shipped binary)")
+    add_seq(ap)
+    add_data_root(ap)
+    add_frames(ap, default="0,250")
+    add_model(ap)
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
     predictor = DepthPredictor.load(a.model)          # a bad checkpoint is refused before any data is read

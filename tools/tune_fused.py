@@ -21,11 +21,13 @@ import sys
 from pathlib import Path
 
 
+from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq  # noqa: E402
 from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
 from mono_map.eval.map_metrics import compare_leaves, surface_precision  # noqa: E402
 from mono_map.frames import parse_frames  # noqa: E402
 from mono_map.mapping.inputs import load_predictor  # noqa: E402
+from mono_map.mapping.jobs import MapJob  # noqa: E402
 from mono_map.mapping.pipeline import build_map, make_builders, run_builders  # noqa: E402
 from mono_map.mapping.fused import FusedConfig  # noqa: E402
 from mono_map.mapping.octree import tree_leaves  # noqa: E402
@@ -54,10 +56,10 @@ def row(name: str, m: dict) -> str:
 def main(argv=None) -> int:
     d = FusedConfig()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seq", default="06")
-    p.add_argument("--frames", default="0:60")
-    p.add_argument("--data-root", default=None)
-    p.add_argument("--model", default="shipped", help="'shipped', 'oracle' or a checkpoint")
+    add_seq(p, default="06", help="a training town to tune on")
+    add_frames(p, default="0:60")
+    add_data_root(p)
+    add_model(p, oracle=True)
     p.add_argument("--oracle-sigma", type=float, default=None)
     p.add_argument("--oracle-edge-sigma", type=float, default=None)
     for name in GRID:
@@ -75,9 +77,9 @@ def main(argv=None) -> int:
     frames = parse_frames(args.frames).resolve(len(seq))
     cfg = OctoMapConfig()
     synthetic = seq.depth(frames[0]) is not None
-    print(f"sequence {args.seq}, frames {frames[0]}-{frames[-1]}, model {args.model}", flush=True)
-    ref = tree_leaves(build_map(seq, "lidar-fov", frames=frames, octomap=cfg, show_progress=False).tree)
-    gt_tree = build_map(seq, "depth-gt", frames=frames, octomap=cfg, show_progress=False).tree if synthetic else None
+    print(f"sequence {args.seq}, frames {frames[0]}-{frames[-1]}, model {args.model or 'shipped'}", flush=True)
+    ref = tree_leaves(build_map(seq, MapJob.spec("lidar-fov", frames, octomap=cfg), show_progress=False).tree)
+    gt_tree = build_map(seq, MapJob.spec("depth-gt", frames, octomap=cfg), show_progress=False).tree if synthetic else None
     surf = tree_leaves(gt_tree) if synthetic else None
     if args.model == "oracle":
         kw = {} if args.oracle_sigma is None else {"sigma": args.oracle_sigma}
@@ -93,8 +95,8 @@ def main(argv=None) -> int:
     for g in grid:
         names.append("fused " + " ".join(f"{n} {getattr(g, n):g}" for n in GRID if getattr(g, n) != getattr(d, n)))
         maps.append(dict(integrate="fused", fused=g))
-    builders = make_builders(seq, [dict(kw, source="mono", predictor=predictor, stats_every=10**9) for kw in maps],
-                             len(frames))
+    builders = make_builders(seq, [dict(job=MapJob.spec("mono", frames, **kw), predictor=predictor, stats_every=10**9)
+                                   for kw in maps])
     run_builders(seq, builders, frames)
     lines = ["| map | acc. | cov. | occ. P / R / F1 | surface prec. | occupied cells | memory (MB) |",
              "|---|---:|---:|---:|---:|---:|---:|"]

@@ -9,8 +9,6 @@ from __future__ import annotations
 import os
 
 from mono_map.data import kitti_raw
-# imported from here by mono_map/depth/commands.py until the cli/ package imports them from kitti_files
-from mono_map.data.kitti_files import PNG_GRAY_TYPES, read_image_rgb, read_png_header  # noqa: F401
 from mono_map.data.kitti_odometry import KittiSequence
 from mono_map.data.kitti_raw_reader import KittiRawSequence
 from mono_map.errors import MonoMapError

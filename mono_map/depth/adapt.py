@@ -181,14 +181,12 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
 
     from mono_map.data.prepare import prepare_sequence
     from mono_map.depth.adapter import Adapter, base_beyond_probs, copy_state, save_state
-    from mono_map.depth.inference import default_checkpoint, load_checkpoint, save_checkpoint
+    from mono_map.depth.inference import load_checkpoint, resolve_checkpoint, save_checkpoint
     from mono_map.io import write_json_atomic
     from mono_map.progress import progress
 
     cfg.validate()
-    path = Path(base) if base is not None else default_checkpoint("binary")
-    if base is not None and not path.suffix and not path.exists():
-        path = default_checkpoint(str(base))
+    path = resolve_checkpoint(base)
     model, payload = load_checkpoint(path)
     if model.head.kind != "bins" or model.head.dropout:
         raise MonoMapError(f"--model: {path}: a '{model.cfg.head}' head; adapt needs a bin distribution "

@@ -23,6 +23,7 @@ from mono_map.paths import CHECKPOINT_DIR
 
 CHECKPOINT_FORMAT = "mono-map-depth"
 CHECKPOINT_VERSION = 1
+ORACLE = "oracle"                 # --model oracle: the noisy ground truth (mapping/oracle.py), no checkpoint
 MC_SEED = 0                       # the dropout masks of MC-dropout predictions (DepthPredictor._forward)
 
 
@@ -96,6 +97,44 @@ def default_checkpoint(head: str = "binary") -> Path:
     """A shipped checkpoint by name: "binary" (model v2, the mapping model), "v2/<head>" (the other heads of
     the v2 comparison) or "v1/<head>" (v1 heads)."""
     return CHECKPOINT_DIR / f"{head}.pt"
+
+
+def resolve_checkpoint(model: str | os.PathLike | None) -> Path:
+    """The file a model name names — the one place a name becomes a checkpoint: None → the shipped
+    binary model; a bare name without suffix that is no file ("softmax", "v2/softmax") → its shipped
+    checkpoint (:func:`default_checkpoint`); anything else → that path. Existence is not checked."""
+    if model is None:
+        return default_checkpoint("binary")
+    path = Path(model)
+    if not path.suffix and not path.exists():
+        return default_checkpoint(str(model))
+    return path
+
+
+def checkpoint_path(model: str | None) -> Path | None:
+    """The checkpoint file ``--model`` names (:func:`resolve_checkpoint`; 'oracle', the noisy ground truth
+    of a synthetic sequence: None); MonoMapError naming ``--model`` if it does not exist."""
+    if model == ORACLE:
+        return None
+    path = resolve_checkpoint(model)
+    if not path.is_file():
+        raise MonoMapError(f"--model: {model}: checkpoint not found")
+    return path
+
+
+def model_digest(model: str | None) -> str:
+    """What identifies the depth model ``--model`` names: sha256 of its checkpoint file (first 16 hex),
+    or 'oracle'."""
+    import hashlib
+
+    path = checkpoint_path(model)
+    if path is None:
+        return ORACLE
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
 
 
 def shipped_names() -> list[str]:
@@ -221,10 +260,7 @@ class DepthPredictor:
     def load(cls, checkpoint: str | os.PathLike | None = None, device: str = "cpu",
              space: str = "log", fast: bool = False, precision: str = "fp32") -> "DepthPredictor":
         """None -> the shipped binary checkpoint; a bare head name (e.g. "softmax") -> its shipped checkpoint."""
-        if checkpoint is None:
-            checkpoint = default_checkpoint("binary")
-        elif not Path(checkpoint).suffix and not Path(checkpoint).exists():
-            checkpoint = default_checkpoint(str(checkpoint))
+        checkpoint = resolve_checkpoint(checkpoint)
         model, payload = load_checkpoint(checkpoint, device)
         return cls(model, Path(checkpoint), device, space, payload.get("training"), fast, precision)
 

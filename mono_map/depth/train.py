@@ -70,11 +70,9 @@ def init_distributed(rank: int, world: int, backend: str | None = None) -> None:
 def init_weights(name: str, mcfg, device: str = "cpu") -> dict:
     """The state dict of checkpoint ``name`` (a path or a shipped name such as "v2/binary") to start a run
     from; MonoMapError naming ``train.init`` if it is missing, unreadable or another network or bins."""
-    from mono_map.depth.inference import default_checkpoint, load_checkpoint
+    from mono_map.depth.inference import load_checkpoint, resolve_checkpoint
 
-    path = Path(name).expanduser()
-    if not path.suffix and not path.exists():
-        path = default_checkpoint(name)
+    path = resolve_checkpoint(Path(name).expanduser())
     if not path.is_file():
         raise MonoMapError(f"train.init: {name}: checkpoint not found")
     model, _ = load_checkpoint(path, device)

@@ -22,7 +22,8 @@ from mono_map.frames import FrameSelection
 from mono_map.io import prepare_output_dir
 from mono_map.mapping.distribution import DistributionConfig
 from mono_map.mapping.fused import FusedConfig
-from mono_map.mapping.jobs import MapJob, check_reach
+from mono_map.mapping.jobs import MapJob
+from mono_map.mapping.limits import check_reach
 from mono_map.mapping.strategies import source_of
 from mono_map.paths import sequence_output_dir
 
@@ -97,7 +98,8 @@ PASS_BYTES_PER_MAP_FRAME = 1.5e6
 def build_missing(todo: list[tuple[MapJob, bool]], seq, out_dir: Path, predictor) -> None:
     """Build the missing maps in as few passes over the frames as memory allows (every map of a pass
     shares each frame's prediction: the keep sweep costs one prediction pass, not one per keep)."""
-    from mono_map.mapping.jobs import MapRequest, build_and_write_all, memory_limit
+    from mono_map.mapping.limits import memory_limit
+    from mono_map.mapping.publish import MapRequest, build_and_write_all
 
     if not todo:
         return
@@ -119,7 +121,8 @@ def run_table(job: TableJob, pictures=None) -> Table:
     from mono_map.frames import frames_tag
     from mono_map.io import staged_dir, write_json_atomic, write_text_atomic
     from mono_map.mapping.inputs import load_predictor
-    from mono_map.mapping.jobs import model_digest, read_map_sidecar
+    from mono_map.depth.inference import model_digest
+    from mono_map.mapping.jobs import read_map_sidecar
     from mono_map.mapping.octree import load_tree, tree_leaves
 
     cfg = job.octomap

@@ -11,8 +11,9 @@ batched path of :mod:`mono_map.mapping.integrate`; with ``integrate="distributio
 pixel's whole depth distribution sets the updates along its ray instead
 (:mod:`mono_map.mapping.distribution`, one frame: :mod:`mono_map.mapping.distribution_frame`).
 
-Here one map's :class:`MapBuilder` (checked by :func:`make_builder`); a frame's shared image and
-predictions are :mod:`mono_map.mapping.inputs`, several maps in one pass :mod:`mono_map.mapping.pipeline`.
+Here one map's :class:`MapBuilder`, made from the map's specification (a
+:class:`~mono_map.mapping.jobs.MapJob`) by :func:`make_builder`; a frame's shared image and predictions are
+:mod:`mono_map.mapping.inputs`, several maps in one pass :mod:`mono_map.mapping.pipeline`.
 """
 
 from __future__ import annotations
@@ -23,21 +24,18 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from mono_map.config import OctoMapConfig
 from mono_map.depth.bins import DepthBins
 from mono_map.errors import MonoMapError
-from mono_map.mapping.distribution import CellUpdates, DistributionConfig, check_distribution_config
+from mono_map.mapping.distribution import CellUpdates, check_distribution_config
 from mono_map.mapping.distribution_frame import distribution_frame
-from mono_map.mapping.fused import FusedConfig, SurfaceFusion, check_fused_config, due_surface_points, fuse_prediction
+from mono_map.mapping.fused import SurfaceFusion, check_fused_config, due_surface_points, fuse_prediction
 from mono_map.mapping.inputs import FrameInputs, bin_edges, load_predictor, probs_steps
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.nested import KeepGroup, nested_frame
 from mono_map.mapping.octree import coord_to_key, key_to_coord, pack_keys, sorted_unique, unpack_keys
 from mono_map.mapping.points import camera_origin, pixels_to_world
 from mono_map.mapping.reference import lidar_measurement
-from mono_map.mapping.select import DEFAULT_KEEP, check_keep, check_rank, confidence_score, select_pixels, valid_pixels
-from mono_map.mapping.strategies import integration_of, source_of
-
+from mono_map.mapping.select import check_keep, check_rank, confidence_score, select_pixels, valid_pixels
 
 
 @dataclass
@@ -101,24 +99,27 @@ class Measurement:
 
 
 class MapBuilder:
-    """Integrates frames of ``seq`` into a new OctoMap, one :meth:`step` per frame (see :func:`build_map`
-    for the arguments; :func:`make_builder` checks them)."""
+    """Integrates the frames of ``job`` (a :class:`~mono_map.mapping.jobs.MapJob`: source, keep,
+    integration and its settings, OctoMap settings, stride, frames) from ``seq`` into a new OctoMap, one
+    :meth:`step` per frame; ``predictor`` makes a mono map's depth distributions, ``observers`` get each
+    frame's :class:`FrameUpdate`. :func:`make_builder` checks the job and loads the predictor.
 
-    def __init__(self, seq, source: str, keep: float, *, octomap: OctoMapConfig, stride: int, predictor,
-                 depth_range: tuple[float, float], observers: Sequence[Callable], stats_every: int,
-                 method: str, integrate: str, distribution: DistributionConfig, n_frames: int,
-                 rank: str = "entropy", fused: FusedConfig | None = None):
-        self.seq, self.source, self.keep, self.stride, self.rank = seq, source, keep, stride, rank
-        self.kind, self.integration = source_of(source), integration_of(integrate, source)
-        self.predictor, self.depth_range, self.observers = predictor, depth_range, list(observers)
-        self.stats_every, self.n_frames, self.dcfg = stats_every, n_frames, distribution
-        self.integrate = integrate
+    depth_range: valid depths (metres); stats_every: leaf count / memory measured every N frames;
+    method: the integration ("batched", or OctoMap's own "insertPointCloud"); rank: the keep maps'
+    pixel ranking ("entropy", the paper's, or "metric": :func:`mono_map.mapping.select.confidence_score`)."""
+
+    def __init__(self, job, seq, predictor, observers: Sequence[Callable] = (), *,
+                 depth_range: tuple[float, float], stats_every: int = 100, method: str = "batched",
+                 rank: str = "entropy"):
+        self.job, self.seq, self.predictor, self.observers = job, seq, predictor, list(observers)
+        self.source, self.keep, self.stride, self.rank = job.source, job.keep, job.stride, rank
+        self.kind, self.integration = job.kind, job.integration
+        self.depth_range, self.stats_every, self.n_frames = depth_range, stats_every, len(job.frames)
+        self.dcfg, self.fcfg = job.distribution, job.fused
         self.dist_mode = self.integration.distributional
-        self.integrator = MapIntegrator(octomap, method=method)
-        self.fcfg = fused or FusedConfig()
-        # fused: the surface's TSDF beside the free-space half; surface keys as last extracted (streaming)
-        self.fusion = (SurfaceFusion(self.fcfg, octomap.resolution)
-                       if self.integration.fused else None)
+        self.integrator = MapIntegrator(job.octomap, method=method)
+        # fused: the surface's TSDF beside the free-space half
+        self.fusion = SurfaceFusion(self.fcfg, job.octomap.resolution) if self.integration.fused else None
         self.surface_points = 0                    # fused: surface hits inserted (cells, summed over frames)
         self.group: KeepGroup | None = None   # keep maps whose frames share one ray cast (share_ray_casts)
         self.edges = bin_edges(predictor) if self.dist_mode else None
@@ -129,18 +130,29 @@ class MapBuilder:
         self.t_start = time.perf_counter()
 
     def step(self, i: int, inputs: FrameInputs | None = None) -> None:
-        """Frame ``i``: predict → select → back-project (or read the scan) → integrate → observers.
-        ``inputs``: the frame's image and predictions shared with other maps built in the same pass."""
+        """Frame ``i``: measure (predict → select → back-project, or read the scan) → integrate → account →
+        observers. ``inputs``: the frame's image and predictions shared with other maps built in the same pass."""
         t_frame = time.perf_counter()
         if inputs is None:
             inputs = FrameInputs(self.seq, i, probs_steps([self]))
         T_world_cam2 = self.seq.T_world_cam2(i)
+        m = self.measure(i, T_world_cam2, inputs)
+        res, n_used = self.integrate(i, T_world_cam2, m)
+        fstats = self.account(i, m, res, n_used, t_frame)
+        if self.observers:
+            self.notify(i, T_world_cam2, m, res, fstats)
+
+    def measure(self, i: int, T_world_cam2: np.ndarray, inputs: FrameInputs) -> Measurement:
+        """Frame ``i``'s input to the map, from the job's source."""
         if self.kind.predicted:
-            m = self.mono_measurement(i, T_world_cam2, inputs)
-        elif self.kind.ground_truth:
-            m = self.depth_gt_measurement(i, T_world_cam2, inputs)
-        else:
-            m = self.lidar_measurement(i)
+            return self.mono_measurement(i, T_world_cam2, inputs)
+        if self.kind.ground_truth:
+            return self.depth_gt_measurement(i, T_world_cam2, inputs)
+        return self.lidar_measurement(i)
+
+    def integrate(self, i: int, T_world_cam2: np.ndarray, m: Measurement):
+        """Insert a measurement with the job's integration: whole distributions (and the fused surface), the
+        keep group's shared ray cast, or end points. Returns (the frame's FrameIntegration, rays used)."""
         if self.dist_mode:
             res, n_used = distribution_frame(self.integrator, m.prediction, m.valid, self.K, T_world_cam2,
                                              self.edges, self.dcfg, i, free_only=self.fusion is not None)
@@ -150,13 +162,10 @@ class MapBuilder:
                 last = len(self.per_frame) + 1 == self.n_frames
                 res = self.surface_hits(res, due_surface_points(self.fusion, flush=last))
             m.kept_fraction = n_used / m.n_valid
-        elif m.key_sets is not None:
-            res, n_used = self.integrator.insert_key_sets(m.key_sets), int(np.count_nonzero(m.mask))
-        else:
-            res, n_used = self.integrator.insert(m.points, m.origin), len(m.points)
-        fstats = self.account(i, m, res, n_used, t_frame)
-        if self.observers:
-            self.notify(i, T_world_cam2, m, res, fstats)
+            return res, n_used
+        if m.key_sets is not None:
+            return self.integrator.insert_key_sets(m.key_sets), int(np.count_nonzero(m.mask))
+        return self.integrator.insert(m.points, m.origin), len(m.points)
 
     def surface_hits(self, res, points: list[np.ndarray]):
         """Insert the fused surface's hits (one array of world points per snapped frame: each frame's cells
@@ -265,7 +274,7 @@ class MapBuilder:
 
     def result(self, frames: Sequence[int]) -> BuildResult:
         """The tree and the build's statistics (the integrator is finished: no more steps)."""
-        integrate = self.integrate
+        integrate = self.job.integrate
         cfg, dcfg, dist = self.integrator.cfg, self.dcfg, self.dist_mode
         final = self.integrator.stats()
         wall = time.perf_counter() - self.t_start
@@ -295,33 +304,28 @@ class MapBuilder:
         return BuildResult(tree=tree, stats=stats, per_frame=self.per_frame, integrator=self.integrator)
 
 
-def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_frames: int,
-                 octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None, model: str | None = None,
-                 depth_range: tuple[float, float] | None = None, observers: Sequence[Callable] = (),
-                 stats_every: int = 100, method: str = "batched", integrate: str = "keep",
-                 distribution: DistributionConfig | None = None, rank: str = "entropy",
-                 fused: FusedConfig | None = None) -> MapBuilder:
-    """A checked :class:`MapBuilder` for ``n_frames`` frames (arguments as :func:`build_map`'s).
-    Raises MonoMapError on bad input."""
-    kind = source_of(source)
-    cfg = octomap or OctoMapConfig()
-    stride = int(stride)
-    if stride < 1:
-        raise MonoMapError(f"--stride: must be a positive integer, got {stride}")
-    dist_mode = integration_of(integrate, kind).distributional
-    dcfg = check_distribution_config(distribution or DistributionConfig())
-    fcfg = check_fused_config(fused or FusedConfig())
+def make_builder(seq, job, predictor=None, observers: Sequence[Callable] = (), *,
+                 depth_range: tuple[float, float] | None = None, stats_every: int = 100, method: str = "batched",
+                 rank: str = "entropy") -> MapBuilder:
+    """A checked :class:`MapBuilder` of ``job`` (a :class:`~mono_map.mapping.jobs.MapJob`) over ``seq``.
+    predictor: anything with ``predict(image) -> DepthPrediction`` or ``predict_frame(seq, i, image)``;
+    None loads ``job.model``'s (:func:`~mono_map.mapping.inputs.load_predictor`; None → the shipped
+    checkpoint). depth_range: valid predicted depths (metres), default the predictor's bin range (else
+    DepthBins' 1–80 m). Raises MonoMapError on bad input."""
+    if job.stride < 1:
+        raise MonoMapError(f"--stride: must be a positive integer, got {job.stride}")
+    dist_mode = job.integration.distributional
+    check_distribution_config(job.distribution)
+    check_fused_config(job.fused)
     if dist_mode and method != "batched":
-        raise MonoMapError(f"--integrate {integrate}: needs the batched integration method")
-    if kind.predicted and not dist_mode:
-        keep = check_keep(keep)
+        raise MonoMapError(f"--integrate {job.integrate}: needs the batched integration method")
+    if job.kind.predicted and not dist_mode:
+        check_keep(job.keep)
     rank = check_rank(rank)
-    if kind.predicted and predictor is None:
-        predictor = load_predictor(model)
+    if job.kind.predicted and predictor is None:
+        predictor = load_predictor(job.model)
     if depth_range is None:
         bins = getattr(predictor, "bins", None) or DepthBins()
         depth_range = (float(bins.min_depth), float(bins.max_depth))
-    return MapBuilder(seq, source, keep, octomap=cfg, stride=stride, predictor=predictor,
-                      depth_range=depth_range, observers=observers, stats_every=stats_every, method=method,
-                      integrate=integrate, distribution=dcfg, n_frames=n_frames, rank=rank, fused=fcfg)
-
+    return MapBuilder(job, seq, predictor, observers, depth_range=depth_range, stats_every=stats_every,
+                      method=method, rank=rank)

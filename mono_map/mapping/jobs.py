@@ -1,14 +1,14 @@
-"""A map job: everything that determines a map (:class:`MapJob`), its file name and key, and building +
-publishing it.
+"""A map job: everything that determines a map (:class:`MapJob`, the map's specification, made once at
+the command line and passed whole down to :class:`~mono_map.mapping.build.MapBuilder`), its file name and
+key, and whether a written map can be reused.
 
 A :class:`MapJob` holds the data root, sequence and synthetic recipe marker, source, keep, integration,
 OctoMap settings, frames, stride, the checkpoint's sha256 digest and the inference precision. Its
 :meth:`MapJob.key` is stored in the map's ``.json`` and :func:`reusable` compares it before a written
-map is reused; :meth:`MapJob.stem` is the file name, for people. :func:`build_and_write` builds a map
-and publishes its ``.bt``, ``.json`` (and ``.ot``, ``.rrd``) together or not at all;
-:func:`build_and_write_all` does so for several maps of the same frames in one pass (one prediction per
-frame for all of them); :func:`check_memory` refuses, before building, a job whose first frame would not
-fit in memory.
+map is reused; :meth:`MapJob.stem` is the file name, for people. :meth:`MapJob.of` makes the job of an
+open sequence (its data identified), :meth:`MapJob.spec` a bare specification (library use, tests).
+Building and publishing a job: :mod:`mono_map.mapping.publish`; its memory and reach checks:
+:mod:`mono_map.mapping.limits`.
 """
 
 from __future__ import annotations
@@ -23,57 +23,8 @@ from mono_map.config import OctoMapConfig
 from mono_map.frames import frames_tag
 from mono_map.mapping.distribution import DistributionConfig
 from mono_map.mapping.fused import FusedConfig
+from mono_map.mapping.select import DEFAULT_KEEP
 from mono_map.mapping.strategies import Integration, Source, integration_of, source_of
-
-# rerun's file sink blocks for good on a full disk: a recording stops while this much is still free
-RRD_MIN_FREE = 32 << 20
-
-
-class DiskSpaceGuard:
-    """Observer that stops a build before the disk under ``path`` fills (MonoMapError naming it)."""
-
-    def __init__(self, path: Path, min_free: int = RRD_MIN_FREE):
-        self.path, self.min_free = Path(path), min_free
-
-    def __call__(self, update) -> None:
-        from mono_map.errors import MonoMapError
-        from mono_map.io import free_bytes
-
-        free = free_bytes(self.path.parent)
-        if free < self.min_free:
-            raise MonoMapError(f"{self.path}: the disk is nearly full ({free / 2**20:.1f} MB left) at frame "
-                               f"{update.index}; nothing was written")
-
-
-def checkpoint_path(model: str | None) -> Path | None:
-    """The checkpoint file ``--model`` names (None: the shipped binary model; a bare head name: its
-    shipped checkpoint; 'oracle': none); MonoMapError if it does not exist."""
-    from mono_map.depth.inference import default_checkpoint
-    from mono_map.errors import MonoMapError
-
-    if model == "oracle":
-        return None
-    if model is None:
-        path = default_checkpoint("binary")
-    elif not Path(model).suffix and not Path(model).exists():
-        path = default_checkpoint(str(model))
-    else:
-        path = Path(model)
-    if not path.is_file():
-        raise MonoMapError(f"--model: {model}: checkpoint not found")
-    return path
-
-
-def model_digest(model: str | None) -> str:
-    """What identifies the depth model: sha256 of its checkpoint file (first 16 hex), or 'oracle'."""
-    path = checkpoint_path(model)
-    if path is None:
-        return "oracle"
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:16]
 
 
 def synthetic_marker(seq) -> tuple[tuple[str, object], ...]:
@@ -141,13 +92,29 @@ class MapJob:
             from mono_map.depth.inference import default_precision
 
             precision = default_precision()
+        if mono and not digest:
+            from mono_map.depth.inference import model_digest
+
+            digest = model_digest(model)
         return cls(sequence=getattr(seq, "name", None), data_root=str(Path(seq.root).resolve()),
                    source=source, frames=tuple(int(i) for i in frames), keep=float(keep), integrate=integrate,
                    distribution=distribution or DistributionConfig(), octomap=octomap or OctoMapConfig(),
                    stride=int(stride), model=model if mono else None,
-                   digest=(digest or model_digest(model)) if mono else None, precision=precision,
+                   digest=digest if mono else None, precision=precision,
                    synthetic=synthetic_marker(seq), data=data_fingerprint(seq, source, frames),
                    fused=fused or FusedConfig())
+
+    @classmethod
+    def spec(cls, source: str = "mono", frames=(), *, keep: float = DEFAULT_KEEP, integrate: str = "keep",
+             distribution: DistributionConfig | None = None, octomap: OctoMapConfig | None = None,
+             stride: int = 1, model: str | None = None, fused: FusedConfig | None = None) -> "MapJob":
+        """A map's settings without the data's identity (no sequence, digest or fingerprint: not for reuse),
+        for building in the library and in tests: ``build_map(seq, MapJob.spec("mono", range(6), keep=0.8))``.
+        ``model`` names the checkpoint a mono map's predictor is loaded from when none is given."""
+        return cls(sequence=None, data_root=None, source=source, frames=tuple(int(i) for i in frames),
+                   keep=float(keep), integrate=integrate, distribution=distribution or DistributionConfig(),
+                   octomap=octomap or OctoMapConfig(), stride=int(stride),
+                   model=model if source_of(source).predicted else None, fused=fused or FusedConfig())
 
     @property
     def kind(self) -> Source:
@@ -269,205 +236,3 @@ def reusable(bt: Path, job: MapJob) -> tuple[bool, str]:
     if side["stats"].get("bt_bytes") not in (None, bt.stat().st_size):
         return False, f"{bt.name} does not match its .json"
     return True, ""
-
-
-def memory_limit() -> tuple[float, str]:
-    """Bytes a build may use, and where the figure comes from: ``$MONO_MAP_MEMORY_GB``, else the
-    smaller of the available RAM (/proc/meminfo) and the address-space limit (ulimit -v)."""
-    import resource
-
-    from mono_map.schema import env_value
-
-    gb = env_value("MONO_MAP_MEMORY_GB")  # checked: a positive, finite number of GB or refused naming it
-    if gb is not None:
-        return gb * 2**30, "$MONO_MAP_MEMORY_GB"
-    limit, where = float("inf"), "no limit known"
-    try:
-        for line in open("/proc/meminfo"):
-            if line.startswith("MemAvailable:"):
-                limit, where = float(line.split()[1]) * 1024, "available RAM"
-    except OSError:
-        pass
-    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
-    if soft != resource.RLIM_INFINITY and soft < limit:
-        limit, where = float(soft), "ulimit -v"
-    return limit, where
-
-
-# Peak memory of one frame's integration, measured on tiny frame 0 (peak RSS above the start-up):
-# LiDAR ≈ 90 B per ray-cell visit (0.05 m: 22 M visits, 1.9 GB); mono (shipped model, keep 0.8,
-# 1241×376) ≈ 150 MB at 0.2 m, growing as (0.2 / res)^2.5 (0.1 m: 0.58 GB, 0.05 m: 3.3 GB).
-BYTES_PER_VISIT = 90
-MONO_BYTES_AT_02 = 150e6
-
-
-def estimate_frame_bytes(seq, i: int, source: str, cfg, stride: int, keep: float) -> float:
-    """Peak bytes to integrate frame ``i`` alone (see the constants above; an estimate, not a bound).
-    Camera sources (mono, depth-gt) are estimated from their pixel count."""
-    import numpy as np
-
-    if source_of(source).camera:
-        h, w = seq.image_size
-        pixels = (-(-h // stride)) * (-(-w // stride)) * keep
-        return MONO_BYTES_AT_02 * (0.2 / cfg.resolution) ** 2.5 * pixels / (376 * 1241 * 0.8)
-    from mono_map.mapping.reference import lidar_measurement
-
-    pts, origin = lidar_measurement(seq, i, source)
-    lengths = np.linalg.norm(pts - origin, axis=1)
-    if cfg.max_range > 0:
-        lengths = np.minimum(lengths, cfg.max_range)
-    return float(np.sum(lengths / cfg.resolution + 1)) * BYTES_PER_VISIT
-
-
-def check_reach(seq, job: MapJob) -> None:
-    """Refuse, before building, a job whose camera leaves the region an OctoMap of its resolution can
-    address (16-bit keys: ±32767 cells around the world origin), naming the pose file and line."""
-    import numpy as np
-
-    from mono_map.errors import MonoMapError
-
-    poses = getattr(seq, "poses_cam0", None)
-    if poses is None:
-        return
-    frames = np.asarray(job.frames, dtype=np.int64)
-    reach = 32767 * job.octomap.resolution
-    far = np.abs(poses[frames, :3, 3]).max(axis=1)
-    if far.max() >= reach:
-        k = int(frames[int(far.argmax())])
-        raise MonoMapError(f"{seq.pose_path}:{k + 1}: frame {k}'s pose is {far.max():.0f} m from the first camera, "
-                           f"beyond what a {job.octomap.resolution:g} m OctoMap can address (±{reach:.0f} m); "
-                           "is the pose right? (a coarser --res reaches further)")
-
-
-def check_memory(seq, job: MapJob) -> None:
-    """Refuse, before building, a job whose first frame alone would not fit in memory (a distribution
-    build: one ray every ``ray_step``-th pixel of every valid one; depth-gt: every pixel)."""
-    from mono_map.errors import MonoMapError
-
-    keep, stride, cfg = job.keep, job.stride, job.octomap
-    if job.kind.ground_truth:
-        keep = 1.0
-    elif job.distributional:
-        keep, stride = 1.0, stride * job.distribution.ray_step
-    need = estimate_frame_bytes(seq, job.frames[0], job.source, cfg, stride, keep)
-    limit, where = memory_limit()
-    if need > limit:
-        raise MonoMapError(f"--res: {cfg.resolution:g} m cells: integrating frame {job.frames[0]} alone would need "
-                           f"about {need / 2**30:.1f} GB, more than the {limit / 2**30:.1f} GB allowed ({where}); "
-                           "use a coarser --res, a --max-range or a larger --stride")
-
-
-@dataclass
-class MapRequest:
-    """One map of a build pass and where it goes: the job, its file stem (default :meth:`MapJob.stem`),
-    extra observers, a rerun recording ``rrd`` made by ``logger(temporary rrd path)``, and ``write_ot``
-    (also the probabilistic ``.ot`` that calibration needs — .bt keeps max-likelihood states only)."""
-
-    job: MapJob
-    name: str | None = None
-    observers: tuple = ()
-    rrd: Path | None = None
-    logger: object = None
-    write_ot: bool = False
-
-
-def build_and_write(job: MapJob, seq, out_dir: Path, name: str | None = None, observers=(),
-                    show_progress: bool = True, predictor=None, rrd: Path | None = None, logger=None,
-                    write_ot: bool = False) -> tuple[Path, dict]:
-    """Build ``job``'s map from the open sequence ``seq`` and publish ``<name>.bt``, ``<name>.json`` (and
-    ``.ot``, ``rrd``) together (see :class:`MapRequest` and :func:`build_and_write_all`); (bt path, stats)."""
-    return build_and_write_all([MapRequest(job, name, tuple(observers), rrd, logger, write_ot)], seq, out_dir,
-                               predictor=predictor, show_progress=show_progress)[0]
-
-
-def build_and_write_all(requests: list[MapRequest], seq, out_dir: Path, predictor=None,
-                        show_progress: bool = True) -> list[tuple[Path, dict]]:
-    """Build every requested map of the same frames in one pass over ``seq`` (each frame read and
-    predicted once: :func:`mono_map.mapping.pipeline.build_maps`) and publish all maps' files together;
-    if any build or any rename fails, nothing is published. predictor: None loads each mono job's model (once per
-    model). Returns (bt path, stats) per request."""
-    from mono_map.errors import MonoMapError
-    from mono_map.io import atomic_outputs
-    from mono_map.mapping.pipeline import make_builders, run_builders
-
-    frames = list(requests[0].job.frames)
-    if any(list(r.job.frames) != frames for r in requests):
-        raise ValueError("build_and_write_all: the maps of one pass must share their frames")
-    per_map = []
-    for r in requests:
-        bt = Path(out_dir) / f"{r.name or r.job.stem()}.bt"
-        extra = ([bt.with_suffix(".ot")] if r.write_ot else []) + ([Path(r.rrd)] if r.rrd is not None else [])
-        per_map.append((bt, [bt] + extra + [bt.with_suffix(".json")]))
-    # one publication for every map's files: all of them or (a build or a rename failing) none
-    with atomic_outputs(*[t for _, targets in per_map for t in targets]) as all_temps:
-        maps, outputs, temps = [], [], iter(all_temps)
-        for r, (bt, targets) in zip(requests, per_map):
-            temp_of = {t: next(temps) for t in targets}
-            observers = list(r.observers)
-            if r.rrd is not None:
-                observers = [DiskSpaceGuard(Path(r.rrd))] + observers + [r.logger(temp_of[Path(r.rrd)])]
-            job = r.job
-            maps.append(dict(source=job.source, keep=job.keep, octomap=job.octomap, stride=job.stride,
-                             predictor=predictor if job.mono else None, model=job.model, observers=observers,
-                             integrate=job.integrate, distribution=job.distribution, fused=job.fused))
-            outputs.append((bt, temp_of))
-        builders = make_builders(seq, maps, len(frames))
-        try:
-            run_builders(seq, builders, frames, show_progress)
-        except RuntimeError as exc:  # rerun's flush timing out: its sink could not write the recording
-            rrds = [str(r.rrd) for r in requests if r.rrd is not None]
-            if not rrds:
-                raise
-            raise MonoMapError(f"{', '.join(rrds)}: rerun could not write the recording ({exc})") from None
-        written = []
-        for r, (bt, temp_of) in zip(requests, outputs):
-            builder = builders.pop(0)     # dropped once written (it holds its tree): one octree in memory at a time
-            written.append((bt, publish_map(r.job, builder.result(frames), bt, temp_of, r.write_ot)))
-            del builder
-    return written
-
-
-def publish_map(job: MapJob, result, bt: Path, temp_of: dict, write_ot: bool) -> dict:
-    """Write a built map's ``.ot`` (``write_ot``), ``.bt`` and ``.json`` to their temporary paths
-    (``temp_of[target]``, published by the caller); returns the stats stored in the ``.json``."""
-    from mono_map.io import quiet_native_output, write_json_atomic
-    from mono_map.mapping.octree import write_tree_bt, write_tree_ot
-
-    frames = list(job.frames)
-    stats = dict(result.stats)
-    stats["model"] = (job.model or "shipped binary checkpoint") if job.mono else None
-    if frames != list(range(frames[0], frames[-1] + 1)):
-        stats["frame_indices"] = frames
-    if write_ot:  # before the .bt: writeBinary turns the tree max-likelihood in memory
-        ot = bt.with_suffix(".ot")
-        with _naming(ot), quiet_native_output():
-            write_tree_ot(result.tree, temp_of[ot])
-        stats["ot"] = str(ot)
-    with _naming(bt), quiet_native_output():  # OctoMap's own warning on a full disk: reported below
-        write_tree_bt(result.tree, temp_of[bt])
-    stats["bt"] = str(bt)
-    stats["bt_bytes"] = temp_of[bt].stat().st_size
-    side = bt.with_suffix(".json")
-    with _naming(side):
-        write_json_atomic(temp_of[side], {"stats": stats, "job": job.key(), "job_hash": job.hash(),
-                                          "per_frame": result.per_frame})
-    return stats
-
-
-def _naming(target: Path):
-    """Errors while writing a temporary file are reported under the output's own name."""
-    import contextlib
-
-    from mono_map.errors import MonoMapError
-    from mono_map.io import free_bytes
-
-    @contextlib.contextmanager
-    def ctx():
-        try:
-            yield
-        except (OSError, MonoMapError) as exc:
-            why = getattr(exc, "strerror", None) or "write failed"
-            if free_bytes(target.parent) < (1 << 20):
-                why = "No space left on device" if why == "write failed" else why
-            raise MonoMapError(f"{target}: could not write it ({why}); nothing was published") from None
-    return ctx()

@@ -10,14 +10,10 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable, Sequence
 
-from mono_map.config import OctoMapConfig
 from mono_map.errors import MonoMapError
 from mono_map.mapping.build import BuildResult, MapBuilder, make_builder
-from mono_map.mapping.distribution import DistributionConfig
-from mono_map.mapping.fused import FusedConfig
 from mono_map.mapping.inputs import FrameInputs, load_predictor, prepare_inputs, probs_steps
 from mono_map.mapping.nested import KeepGroup
-from mono_map.mapping.select import DEFAULT_KEEP
 
 
 def _close(observers: Iterable) -> None:
@@ -85,62 +81,55 @@ def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], sho
             _close(b.observers)
 
 
-def build_map(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, frames: Sequence[int] | None = None,
-              octomap: OctoMapConfig | None = None, stride: int = 1, predictor=None,
-              model: str | None = None, depth_range: tuple[float, float] | None = None,
-              observers: Sequence[Callable] = (), stats_every: int = 100, method: str = "batched",
-              show_progress: bool = True, integrate: str = "keep",
-              distribution: DistributionConfig | None = None, rank: str = "entropy",
-              fused: FusedConfig | None = None) -> BuildResult:
-    """Integrate ``frames`` of ``seq`` into a new OctoMap.
+def build_map(seq, job, *, predictor=None, observers: Sequence[Callable] = (), show_progress: bool = True,
+              **options) -> BuildResult:
+    """Integrate the frames of ``job`` (a :class:`~mono_map.mapping.jobs.MapJob`, e.g.
+    ``MapJob.spec("mono", range(6), keep=0.8)``; no frames: all of ``seq``'s) into a new OctoMap.
 
-    source: "mono" (depth predictor, ``keep`` lowest-entropy fraction of valid pixels), "depth-gt"
-    (ground-truth depth_2, every pixel in the bin range), "lidar" or "lidar-fov" (``keep`` and the
-    predictor are ignored). integrate (mono only): "keep" (the paper: kept pixels' expected depths
-    as end points), "distribution" (every valid pixel's distribution, ``distribution`` settings;
-    ``keep`` is ignored) or "fused" (the distribution's free space + the surface fused across views,
-    ``fused`` settings: :mod:`mono_map.mapping.fused`). rank (keep maps): "entropy" (the paper's) or "metric" (entropy + log depth,
-    :func:`mono_map.mapping.select.confidence_score`). predictor: anything with
-    ``predict(image) -> DepthPrediction`` or ``predict_frame(seq, i, image)``; if None,
-    ``load_predictor(model)`` (None → the shipped checkpoint). depth_range: valid predicted
-    depths (metres), default the predictor's bin range (else DepthBins' 1–80 m).
-    observers: callables ``obs(FrameUpdate)``, closed (``close()``) at the end, also on error.
-    Leaf count / memory are measured every ``stats_every`` frames (a tree traversal) and carried
-    in between. Raises MonoMapError on bad input; nothing is written here.
+    The job's source: "mono" (the depth predictor, the ``keep`` lowest-entropy fraction of valid pixels),
+    "depth-gt" (ground-truth depth_2, every pixel in the bin range), "lidar" or "lidar-fov" (keep and the
+    predictor are ignored); its integration (mono only): "keep" (the paper: kept pixels' expected depths as
+    end points), "distribution" (every valid pixel's distribution, keep ignored) or "fused" (the
+    distribution's free space + the surface fused across views: :mod:`mono_map.mapping.fused`).
+    predictor, observers (callables ``obs(FrameUpdate)``, closed with ``close()`` at the end, also on error)
+    and ``options`` (depth_range, stats_every, method, rank) as :func:`~mono_map.mapping.build.make_builder`'s.
+    Raises MonoMapError on bad input; nothing is written here.
     """
-    return build_maps(seq, [dict(source=source, keep=keep, octomap=octomap, stride=stride, predictor=predictor,
-                                 model=model, depth_range=depth_range, observers=observers,
-                                 stats_every=stats_every, method=method, integrate=integrate,
-                                 distribution=distribution, rank=rank, fused=fused)],
-                      frames=frames, show_progress=show_progress)[0]
+    return build_maps(seq, [dict(job=job, predictor=predictor, observers=observers, **options)],
+                      show_progress=show_progress)[0]
 
 
-def make_builders(seq, maps: Sequence[dict], n_frames: int) -> list[MapBuilder]:
-    """Checked builders of the maps ``maps`` (each :func:`build_map`'s keyword arguments without
-    ``frames``/``show_progress``); mono maps that name the same model (None: the shipped one) and pass
-    no predictor share one loaded predictor, so :func:`run_builders` predicts each frame once."""
+def make_builders(seq, maps: Sequence[dict]) -> list[MapBuilder]:
+    """Checked builders of the maps ``maps`` (each :func:`~mono_map.mapping.build.make_builder`'s keyword
+    arguments: ``job``, ``predictor``, ``observers``, options); mono maps that name the same model (None:
+    the shipped one) and pass no predictor share one loaded predictor, so :func:`run_builders` predicts each
+    frame once."""
     loaded: dict[str | None, object] = {}
     builders = []
     for kw in maps:
         kw = dict(kw)
-        if kw.get("source", "mono") == "mono" and kw.get("predictor") is None:
-            model = kw.pop("model", None)
-            if model not in loaded:
-                loaded[model] = load_predictor(model)
-            kw["predictor"] = loaded[model]
-        builders.append(make_builder(seq, n_frames=n_frames, **kw))
+        job = kw.pop("job")
+        if job.kind.predicted and kw.get("predictor") is None:
+            if job.model not in loaded:
+                loaded[job.model] = load_predictor(job.model)
+            kw["predictor"] = loaded[job.model]
+        builders.append(make_builder(seq, job, **kw))
     return builders
 
 
-def build_maps(seq, maps: Sequence[dict], *, frames: Sequence[int] | None = None,
-               show_progress: bool = True) -> list[BuildResult]:
-    """Build several maps of the same ``frames`` in one pass (:func:`make_builders`, :func:`run_builders`):
-    a keep sweep costs one prediction pass. Every map is checked before any frame is read; nothing is
-    written here."""
-    frames = list(range(len(seq))) if frames is None else list(frames)
+def build_maps(seq, maps: Sequence[dict], *, show_progress: bool = True) -> list[BuildResult]:
+    """Build several maps of the same frames in one pass (:func:`make_builders`, :func:`run_builders`): a
+    keep sweep costs one prediction pass. ``maps``: :func:`make_builders`'s; a job without frames is built
+    over all of ``seq``'s. Every map is checked before any frame is read; nothing is written here."""
+    import dataclasses
+
+    maps = [dict(m, job=dataclasses.replace(m["job"], frames=tuple(range(len(seq)))))
+            if not m["job"].frames else m for m in maps]
+    frames = list(maps[0]["job"].frames) if maps else []
     if not frames:
         raise MonoMapError("--frames: no frames selected")
-    builders = make_builders(seq, maps, len(frames))
+    if any(list(m["job"].frames) != frames for m in maps):
+        raise ValueError("build_maps: the maps of one pass must share their frames")
+    builders = make_builders(seq, maps)
     run_builders(seq, builders, frames, show_progress)
     return [b.result(frames) for b in builders]
-

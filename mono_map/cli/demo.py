@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 from contextlib import contextmanager
 
+from mono_map.cli.build import DEFAULT_FRAMES
+from mono_map.cli.options import add_data_root, add_frames, add_out, add_seq
 from mono_map.io import prepare_output_dir
 from mono_map.paths import sequence_output_dir
 
@@ -17,11 +19,10 @@ from mono_map.paths import sequence_output_dir
 def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="run the main job end to end (synthetic sequence 00 + shipped model)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seq", default="00", help="sequence name (default 00, the held-out evaluation town)")
-    p.add_argument("--frames", default=None,
-                   help="N (the first N), A:B, I,J,... or 'all' (default: the first 500 frames)")
-    p.add_argument("--data-root", default=None, help="KITTI odometry root (default $MONO_MAP_DATA or ./data/kitti)")
-    p.add_argument("--out", default=None, help="output directory (default outputs/seq<SEQ>)")
+    add_seq(p, help="sequence name (00: the held-out evaluation town)")
+    add_frames(p, says=f"the first {DEFAULT_FRAMES} frames")
+    add_data_root(p)
+    add_out(p, help="output directory (default outputs/seq<SEQ>)")
     p.set_defaults(func=run)
 
 
@@ -35,9 +36,10 @@ def run(args: argparse.Namespace) -> int:
     from mono_map.eval.table import TableJob
     from mono_map.frames import first_frames, frames_tag, parse_frames
     from mono_map.mapping.inputs import load_predictor
-    from mono_map.mapping.commands import DEFAULT_FRAMES, run_table
-    from mono_map.mapping.jobs import (MapJob, MapRequest, build_and_write, build_and_write_all, model_digest,
-                                       reusable)
+    from mono_map.cli.eval import run_table
+    from mono_map.depth.inference import model_digest
+    from mono_map.mapping.jobs import MapJob, reusable
+    from mono_map.mapping.publish import MapRequest, build_and_write, build_and_write_all
     from mono_map.viz.rerun_stream import RerunMapLogger
     from mono_map.viz.stream_options import StreamOptions
 

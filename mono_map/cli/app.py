@@ -1,6 +1,6 @@
 """``mono-map``: a thin command line over the library.
 
-Each concept's subcommands live beside it (``mono_map/<concept>/commands.py``) and
+Each concept's subcommands live in a module of this package (``mono_map/cli/<concept>.py``) and
 register themselves here; heavy imports (torch, open3d, octomap) happen inside the
 commands, so ``mono-map --help`` stays instant.
 """
@@ -16,11 +16,12 @@ from mono_map.errors import MonoMapError
 
 # Modules whose ``register(subparsers)`` adds subcommands, in help order.
 COMMAND_MODULES = (
-    "mono_map.data.commands",      # synth
-    "mono_map.depth.commands",     # train, predict, eval-depth
-    "mono_map.mapping.commands",   # build, eval
-    "mono_map.viz.commands",       # view
-    "mono_map.demo",               # demo (the README's main job)
+    "mono_map.cli.data",           # synth, render-trainset
+    "mono_map.cli.depth",          # train, predict, eval-depth, adapt
+    "mono_map.cli.build",          # build
+    "mono_map.cli.eval",           # eval
+    "mono_map.cli.view",           # view
+    "mono_map.cli.demo",           # demo (the README's main job)
 )
 
 

@@ -1,10 +1,12 @@
-"""Subcommands of the data layer (registered by mono_map.cli): ``mono-map synth``, ``mono-map render-trainset``."""
+"""``mono-map synth``, ``mono-map render-trainset`` (registered by mono_map.cli.app)."""
 
 from __future__ import annotations
 
 import argparse
 import os
 import sys
+
+from mono_map.cli.options import add_data_root, add_frames, add_seq
 
 
 def register(subparsers) -> None:
@@ -13,11 +15,10 @@ def register(subparsers) -> None:
         description="Render a synthetic sequence in the KITTI odometry layout (image_2, velodyne, dense depth_2, "
                     "calib.txt, times.txt, poses/NAME.txt) from its recipe.  Existing frames of the same recipe are "
                     "kept, so asking for more frames extends a prefix.")
-    p.add_argument("--seq", required=True, help="recipe name (sequences/NAME.toml, e.g. 00) or path to a .toml")
-    p.add_argument("--frames", default=None,
-                   help="frames to have (the --frames grammar: N, A:B, 'all'; the prefix up to the last one is "
-                        "rendered; default: all of the recipe's)")
-    p.add_argument("--data-root", default=None, help="KITTI root (default $MONO_MAP_DATA or ./data/kitti)")
+    add_seq(p, required=True, help="recipe name (sequences/NAME.toml, e.g. 00) or path to a .toml")
+    add_frames(p, says="all of the recipe's",
+               what="frames to have (the prefix up to the last one is rendered)")
+    add_data_root(p, help="KITTI root (default $MONO_MAP_DATA or ./data/kitti)")
     p.add_argument("--workers", type=int, default=2, help="parallel render processes (default 2)")
     p.add_argument("--force", action="store_true", help="re-render every frame even if present")
     p.add_argument("--layout", choices=("odometry", "raw"), default="odometry",
@@ -71,7 +72,7 @@ def run_synth(args: argparse.Namespace) -> int:
     size = sum(p.stat().st_size for p in seq_dir.rglob("*") if p.is_file())
     print(f"sequence {recipe.name}: {n} frames in {seq_dir} ({size / 1e6:.0f} MB), {dt:.1f} s", file=sys.stderr)
     if drive is not None:
-        from mono_map.data.kitti import KittiSequence
+        from mono_map.data.kitti_odometry import KittiSequence
         from mono_map.data.kitti_raw_writer import write_raw_drive
 
         seq = KittiSequence(root, recipe.name)

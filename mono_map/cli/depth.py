@@ -1,10 +1,12 @@
-"""Subcommands: ``train``, ``predict``, ``eval-depth`` (heavy imports inside the functions)."""
+"""``mono-map train``, ``predict``, ``eval-depth``, ``adapt`` (heavy imports inside the functions)."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
+from mono_map.cli.options import (add_data_root, add_frames, add_model, add_out, add_precision, add_seq,
+                                  add_threads, check_threads)
 from mono_map.errors import MonoMapError
 from mono_map.frames import FrameSelection, parse_frames
 
@@ -15,36 +17,32 @@ def register(subparsers) -> None:
         description="Train per a TOML/JSON config (mono_map/depth/configs/*.toml). Resumes from "
                     "<work_dir>/<name>/last.pt. Multi-process: torchrun --nproc_per_node N -m mono_map train --config F.")
     p.add_argument("--config", required=True, help="training config (.toml or .json)")
-    p.add_argument("--data-root", default=None, help="KITTI root (default: $MONO_MAP_DATA or ./data/kitti)")
+    add_data_root(p, help="KITTI root (default: $MONO_MAP_DATA or ./data/kitti)")
     p.add_argument("--steps", type=int, default=None, help="override train.steps")
     p.add_argument("--output", default=None, help="override train.output (final checkpoint path)")
-    p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
-                   help="override train.bf16: bf16 autocast pays only on CPUs with AMX or AVX-512 BF16 "
-                        "(on an EPYC without AVX-512 a resnet18-half step took 7.5x as long as fp32)")
-    p.add_argument("--threads", type=int, default=None, help="override train.threads (torch intra-op threads)")
+    add_precision(p, help="override train.bf16: bf16 autocast pays only on CPUs with AMX or AVX-512 BF16 "
+                          "(on an EPYC without AVX-512 a resnet18-half step took 7.5x as long as fp32)")
+    add_threads(p, default=None, help="override train.threads (torch intra-op threads)")
     p.add_argument("--no-resume", action="store_true", help="start from scratch even if a checkpoint exists")
     p.set_defaults(func=run_train)
 
     p = subparsers.add_parser("predict", help="predict depth + entropy for a sequence or an image folder")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--seq", help="sequence name under the data root (e.g. 00)")
+    add_seq(src, default=None)
     src.add_argument("--images", help="folder of .png/.jpg images")
-    p.add_argument("--data-root", default=None)
-    p.add_argument("--frames", default=None,
-                   help="with --seq: N (the first N), A:B[:S], I,J,... or 'all' (default all)")
-    p.add_argument("--model", default=None, help="checkpoint path or shipped name: binary (model v2, default), v2/<head> (e.g. v2/softmax) or v1/<head>")
-    p.add_argument("--out", default="outputs/predict", help="output folder")
+    add_data_root(p)
+    add_frames(p, what="with --seq, the frames")
+    add_model(p)
+    add_out(p, default="outputs/predict", help="output folder")
     p.add_argument("--npz", action="store_true", help="also save the K×h×w distributions (float16, model resolution)")
     p.add_argument("--space", choices=("log", "linear"), default="log", help="expectation space")
     p.set_defaults(func=run_predict)
 
     p = subparsers.add_parser("eval-depth", help="depth metrics, uncertainty AUCs, oracle hypotheses of the heads")
-    p.add_argument("--seq", default="00", help="evaluation sequence (default 00, the held-out town)")
-    p.add_argument("--data-root", default=None)
-    p.add_argument("--frames", default=None,
-                   help="N (the first N), A:B[:S], I,J,... or 'all' (default 0:500:10, fewer in a shorter sequence)")
-    p.add_argument("--model", action="append", default=None,
-                   help="checkpoint path or shipped name (binary, v2/<head>, v1/<head>); repeat for several (default: all shipped)")
+    add_seq(p, help="evaluation sequence (00: the held-out town)")
+    add_data_root(p)
+    add_frames(p, says="0:500:10, fewer in a shorter sequence")
+    add_model(p, repeat=True, help="checkpoint path or shipped name (binary, v2/<head>, v1/<head>; default: all shipped)")
     p.add_argument("--gt", choices=("lidar", "dense"), default="lidar", help="ground truth: projected LiDAR or dense depth_2")
     p.add_argument("--kitti-object", default=None, help="evaluate on a real KITTI object 'training' folder instead")
     p.add_argument("--trainset-town", default=None,
@@ -57,8 +55,8 @@ def register(subparsers) -> None:
                         "(raw-calibration LiDAR, Garg crop, 1e-3-80 m) beside full-image numbers")
     p.add_argument("--cap", type=float, default=80.0, help="maximum ground-truth depth (m)")
     p.add_argument("--garg-crop", action="store_true", help="evaluate inside Garg's crop only")
-    p.add_argument("--out", default="outputs/eval_depth", help="output folder (JSON, Markdown, PNG)")
-    p.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
+    add_out(p, default="outputs/eval_depth", help="output folder (JSON, Markdown, PNG)")
+    add_threads(p, default=2)
     p.add_argument("--fast", action="store_true", help="distribution statistics at the decoder's stride 4, then up-sampled")
     p.set_defaults(func=run_eval_depth)
 
@@ -71,11 +69,11 @@ def register(subparsers) -> None:
                     "depth and the sequence's metric poses (SSIM+L1, per-pixel minimum, auto-masking, smoothness). "
                     "Writes <out>/<base>-adapted-<seq>-<digest>.pt for --model of predict, eval-depth, build, eval. "
                     "Resumes from ~/.cache/mono-map/adapt/.")
-    p.add_argument("--seq", required=True, help="sequence name under the data root (e.g. real01)")
-    p.add_argument("--data-root", default=None)
-    p.add_argument("--frames", default=None, help="frames to adapt on: N, A:B[:S], I,J,... or 'all' (default: the first 500, as build)")
-    p.add_argument("--model", default=None, help="base checkpoint path or shipped name (default binary)")
-    p.add_argument("--out", default="outputs/adapt", help="folder of the adapted checkpoint (default outputs/adapt)")
+    add_seq(p, required=True, help="sequence name under the data root (e.g. real01)")
+    add_data_root(p)
+    add_frames(p, says="the first 500, as build", what="frames to adapt on")
+    add_model(p, help="base checkpoint path or shipped name (default binary)")
+    add_out(p, default="outputs/adapt", help="folder of the adapted checkpoint")
     p.add_argument("--steps", type=int, default=d.steps, help=f"optimisation steps (default {d.steps})")
     p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr:g})")
     p.add_argument("--batch-size", type=int, default=d.batch_size, help=f"target frames per step (default {d.batch_size})")
@@ -96,9 +94,8 @@ def register(subparsers) -> None:
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"steps between held-out photometric checks (the stopping rule; default {d.eval_every})")
     p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
-                   help="network precision (default: bf16 on CPUs with AMX / AVX-512 BF16, else fp32)")
-    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
+    add_precision(p)
+    add_threads(p, default=1)
     p.add_argument("--no-resume", action="store_true", help="start again even if a run or checkpoint exists")
     p.set_defaults(func=run_adapt)
 
@@ -152,7 +149,7 @@ def run_predict(args) -> int:
         idx = selection.resolve(len(seq))
         items = [(f"{i:06d}", (lambda i=i: seq.image(i))) for i in idx]
     else:
-        from mono_map.data.kitti import PNG_GRAY_TYPES, read_image_rgb, read_png_header
+        from mono_map.data.kitti_files import PNG_GRAY_TYPES, read_image_rgb, read_png_header
 
         folder = Path(args.images)
         files = sorted(p for p in folder.glob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
@@ -228,8 +225,7 @@ def run_eval_depth(args) -> int:
     selection = parse_frames(args.frames, default=EVAL_FRAMES)
     if args.cap <= 0 or args.cap != args.cap:
         raise MonoMapError(f"--cap: must be a positive depth in metres, got {args.cap}")
-    if args.threads < 1:
-        raise MonoMapError(f"--threads: must be >= 1, got {args.threads}")
+    check_threads(args.threads)
     if args.kitti_object and not Path(args.kitti_object).is_dir():
         raise MonoMapError(f"--kitti-object: {args.kitti_object}: no such folder")
     selection_split = check_split_args(args) if args.split else None
@@ -352,8 +348,7 @@ def run_adapt(args) -> int:
     from mono_map.depth.adapt import AdaptConfig, adapt
     from mono_map.depth.inference import default_precision
 
-    if args.threads < 1:
-        raise MonoMapError(f"--threads: must be >= 1, got {args.threads}")
+    check_threads(args.threads)
     cfg = AdaptConfig(steps=args.steps, lr=args.lr, batch_size=args.batch_size, min_baseline=args.min_baseline,
                       max_baseline=args.max_baseline, max_offset=args.max_offset, loss_scale=args.loss_scale,
                       trim=args.trim,
