@@ -16,8 +16,6 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from mono_map.temps import clean_stale_temps, is_temp_name, register_temp_dir, sweep_once, temp_path
-# imported from here by mono_map/cli.py until the cli/ package imports them from mono_map.temps
-from mono_map.temps import sweep_registered_temps, user_path  # noqa: F401
 
 
 @contextlib.contextmanager

@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         from mono_map.schema import check_env
 
         check_env()  # MONO_MAP_* variables: typed and in range before any command runs
-        from mono_map.io import sweep_registered_temps
+        from mono_map.temps import sweep_registered_temps
 
         sweep_registered_temps()  # what killed runs left, wherever they wrote
         result = args.func(args)
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _fail(close_bars, message: str, code: int) -> int:
-    from mono_map.io import user_path
+    from mono_map.temps import user_path
 
     close_bars()
     message = user_path(message)  # the outputs the user named, never a temporary or staging path
