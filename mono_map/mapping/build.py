@@ -29,7 +29,8 @@ from mono_map.errors import MonoMapError
 from mono_map.mapping.distribution import CellUpdates, DistributionConfig, check_distribution_config
 from mono_map.mapping.distribution_frame import distribution_frame
 from mono_map.mapping.fused import FusedConfig, SurfaceFusion, check_fused_config, due_surface_points, fuse_prediction
-from mono_map.mapping.inputs import FrameInputs, bin_edges, load_predictor, probs_steps
+from mono_map.depth.multiview import MultiviewPosterior, check_multiview_config
+from mono_map.mapping.inputs import FrameInputs, bin_edges, bins_of, load_predictor, probs_steps
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.nested import KeepGroup, nested_frame
 from mono_map.mapping.octree import coord_to_key, key_to_coord, pack_keys, sorted_unique, unpack_keys
@@ -107,7 +108,7 @@ class MapBuilder:
     def __init__(self, seq, source: str, keep: float, *, octomap: OctoMapConfig, stride: int, predictor,
                  depth_range: tuple[float, float], observers: Sequence[Callable], stats_every: int,
                  method: str, integrate: str, distribution: DistributionConfig, n_frames: int,
-                 rank: str = "entropy", fused: FusedConfig | None = None):
+                 rank: str = "entropy", fused: FusedConfig | None = None, multiview=None):
         self.seq, self.source, self.keep, self.stride, self.rank = seq, source, keep, stride, rank
         self.kind, self.integration = source_of(source), integration_of(integrate, source)
         self.predictor, self.depth_range, self.observers = predictor, depth_range, list(observers)
@@ -119,6 +120,9 @@ class MapBuilder:
         # fused: the surface's TSDF beside the free-space half; surface keys as last extracted (streaming)
         self.fusion = (SurfaceFusion(self.fcfg, octomap.resolution)
                        if self.integration.fused else None)
+        # the multi-view posterior (depth/multiview.py): a fused map's own setting, or any mono map's if given
+        mv = multiview or (self.fcfg.multiview_config() if self.fusion is not None else None)
+        self.multiview = MultiviewPosterior(mv, bins_of(predictor)) if mv is not None and self.kind.predicted else None
         self.surface_points = 0                    # fused: surface hits inserted (cells, summed over frames)
         self.group: KeepGroup | None = None   # keep maps whose frames share one ray cast (share_ray_casts)
         self.edges = bin_edges(predictor) if self.dist_mode else None
@@ -178,6 +182,9 @@ class MapBuilder:
         """Predict image_2's depth distribution, keep the lowest-entropy pixels, back-project them."""
         image = inputs.image()
         pred = inputs.prediction(self.predictor)
+        if self.multiview is not None:                 # once per frame for the maps of a pass that share it
+            pred = inputs.shared(("multiview", id(self.predictor), self.multiview.cfg),
+                                 lambda: self.multiview.refine(self.seq, i, pred))
         depth = np.asarray(pred.depth, dtype=np.float32)
         entropy = np.asarray(pred.entropy, dtype=np.float32)
         if depth.shape != image.shape[:2] or entropy.shape != image.shape[:2]:
@@ -300,8 +307,9 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
                  depth_range: tuple[float, float] | None = None, observers: Sequence[Callable] = (),
                  stats_every: int = 100, method: str = "batched", integrate: str = "keep",
                  distribution: DistributionConfig | None = None, rank: str = "entropy",
-                 fused: FusedConfig | None = None) -> MapBuilder:
-    """A checked :class:`MapBuilder` for ``n_frames`` frames (arguments as :func:`build_map`'s).
+                 fused: FusedConfig | None = None, multiview=None) -> MapBuilder:
+    """A checked :class:`MapBuilder` for ``n_frames`` frames (arguments as :func:`build_map`'s; ``multiview``: a
+    MultiviewConfig applied to any mono map, e.g. a keep map, for measuring; a fused map's is its own).
     Raises MonoMapError on bad input."""
     kind = source_of(source)
     cfg = octomap or OctoMapConfig()
@@ -311,6 +319,8 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
     dist_mode = integration_of(integrate, kind).distributional
     dcfg = check_distribution_config(distribution or DistributionConfig())
     fcfg = check_fused_config(fused or FusedConfig())
+    if multiview is not None:
+        check_multiview_config(multiview)
     if dist_mode and method != "batched":
         raise MonoMapError(f"--integrate {integrate}: needs the batched integration method")
     if kind.predicted and not dist_mode:
@@ -323,5 +333,6 @@ def make_builder(seq, source: str = "mono", keep: float = DEFAULT_KEEP, *, n_fra
         depth_range = (float(bins.min_depth), float(bins.max_depth))
     return MapBuilder(seq, source, keep, octomap=cfg, stride=stride, predictor=predictor,
                       depth_range=depth_range, observers=observers, stats_every=stats_every, method=method,
-                      integrate=integrate, distribution=dcfg, n_frames=n_frames, rank=rank, fused=fcfg)
+                      integrate=integrate, distribution=dcfg, n_frames=n_frames, rank=rank, fused=fcfg,
+                      multiview=multiview)
 

@@ -49,7 +49,9 @@ class FusedConfig:
     fused surface this many frames after it was fused (the views that follow it are in the surface; the
     end of the build snaps the rest); snap_window: how far (metres) from a pixel's expected depth the
     surface is looked for along its ray; snap_step: every snap_step-th pixel row and column of the ray grid is
-    snapped (each still hits a cell of its own at 0.2 m cells beyond a few metres)."""
+    snapped (each still hits a cell of its own at 0.2 m cells beyond a few metres); multiview: neighbouring frames
+    (0 = off, 1 or 2) whose images sharpen each frame's distribution before both halves use it (the plane-sweep
+    posterior of :mod:`mono_map.depth.multiview`) and multiview_temperature its likelihood's τ."""
 
     # chosen on training town 06 frames 0-199 (docs/fused.md), never on 00
     spread_ref: float = 0.15
@@ -63,6 +65,15 @@ class FusedConfig:
     lag: int = 10
     snap_window: float = 1.0
     snap_step: int = 2
+    multiview: int = 0
+    multiview_temperature: float = 0.05
+
+    def multiview_config(self):
+        """The multi-view posterior's settings (:mod:`mono_map.depth.multiview`), None when it is off."""
+        from mono_map.depth.multiview import MultiviewConfig
+
+        return MultiviewConfig(sources=int(self.multiview), temperature=self.multiview_temperature) \
+            if self.multiview else None
 
 
 def check_fused_config(cfg: FusedConfig) -> FusedConfig:
@@ -85,6 +96,9 @@ def check_fused_config(cfg: FusedConfig) -> FusedConfig:
         raise MonoMapError(f"--fused-snap-step: must be a positive integer, got {cfg.snap_step}")
     if int(cfg.lag) != cfg.lag or cfg.lag < 0:
         raise MonoMapError(f"--fused-lag: must be a non-negative integer (frames), got {cfg.lag}")
+    if int(cfg.multiview) != cfg.multiview or cfg.multiview not in (0, 1, 2):
+        raise MonoMapError(f"--fused-multiview: neighbours per frame must be 0 (off), 1 or 2, got {cfg.multiview}")
+    positive("fused-multiview-temperature", cfg.multiview_temperature)
     return cfg
 
 
