@@ -40,10 +40,14 @@ def main(argv=None) -> int:
     p.add_argument("--temperature", default="0.05")
     p.add_argument("--sources", default="2")
     p.add_argument("--prior-power", default="1")
+    p.add_argument("--min-baseline", default="0.3")
+    p.add_argument("--window", default="1")
     p.add_argument("--allow-00", action="store_true")
     args = p.parse_args(argv)
-    grid = [MultiviewConfig(sources=int(s), temperature=float(t), prior_power=float(a))
-            for s in args.sources.split(",") for t in args.temperature.split(",") for a in args.prior_power.split(",")]
+    grid = [MultiviewConfig(sources=int(s), temperature=float(t), prior_power=float(a), min_baseline=float(b),
+                            window=int(wn))
+            for s in args.sources.split(",") for t in args.temperature.split(",") for a in args.prior_power.split(",")
+            for b in args.min_baseline.split(",") for wn in args.window.split(",")]
     if args.seq == "00" and (not args.allow_00 or len(grid) > 1):
         raise SystemExit("choose settings on a training town, never on 00 (--allow-00 measures one setting)")
     seq = open_sequence(args.data_root, args.seq)
@@ -79,7 +83,8 @@ def main(argv=None) -> int:
     for k, cfg in enumerate(grid):
         d, gg = (np.concatenate(x) for x in zip(*acc[k]))
         a, b = metrics(d, gg)
-        print(f"| posterior, {cfg.sources} sources, τ {cfg.temperature:g}, a {cfg.prior_power:g} | {a:.3f} | "
+        print(f"| posterior, {cfg.sources} sources ≥ {cfg.min_baseline:g} m, τ {cfg.temperature:g}, a {cfg.prior_power:g}, "
+              f"window {cfg.window} | {a:.3f} | "
               f"{b:.3f} | {100 * np.mean(informative[k]):.0f} % | {secs[k] / len(frames):.2f} |")
     return 0
 

@@ -27,12 +27,13 @@ from mono_map.eval.map_metrics import compare_leaves, surface_precision  # noqa:
 from mono_map.frames import parse_frames  # noqa: E402
 from mono_map.mapping.inputs import load_predictor  # noqa: E402
 from mono_map.mapping.pipeline import build_map, make_builders, run_builders  # noqa: E402
+from mono_map.depth.multiview import MultiviewConfig  # noqa: E402
 from mono_map.mapping.fused import FusedConfig  # noqa: E402
 from mono_map.mapping.octree import tree_leaves  # noqa: E402
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor  # noqa: E402
 
 GRID = ("spread_ref", "min_weight", "trunc_sigma", "trunc_min", "trunc_max", "trunc_behind", "max_depth",
-        "max_spread", "lag", "snap_window", "snap_step", "multiview", "multiview_temperature")
+        "max_spread", "lag", "snap_window", "snap_step", "multiview", "multiview_temperature", "subpixel")
 
 
 def score(tree, ref, surf) -> dict:
@@ -63,6 +64,8 @@ def main(argv=None) -> int:
     for name in GRID:
         p.add_argument("--" + name.replace("_", "-"), default=str(getattr(d, name)), help="comma list")
     p.add_argument("--no-baselines", action="store_true", help="no keep 0.8 / distribution / depth-gt rows")
+    p.add_argument("--keep-multiview", action="store_true",
+                   help="also a keep 0.8 map of the multi-view posterior (depth/multiview.py, its defaults)")
     p.add_argument("--allow-00", action="store_true", help="measure (not tune) on 00: one setting only")
     args = p.parse_args(argv)
     values = [[type(getattr(d, n))(float(v)) for v in getattr(args, n).split(",")] for n in GRID]
@@ -90,6 +93,9 @@ def main(argv=None) -> int:
     if not args.no_baselines:
         names += ["mono keep 0.8", "mono, distribution"]
         maps += [dict(keep=0.8), dict(integrate="distribution")]
+    if args.keep_multiview:
+        names.append("mono keep 0.8, multiview posterior")
+        maps.append(dict(keep=0.8, multiview=MultiviewConfig()))
     for g in grid:
         names.append("fused " + " ".join(f"{n} {getattr(g, n):g}" for n in GRID if getattr(g, n) != getattr(d, n)))
         maps.append(dict(integrate="fused", fused=g))

@@ -35,15 +35,18 @@ class MultiviewConfig:
     sources: neighbours used per frame (the nearest before and after within the baseline range: 1 or 2);
     min_baseline, max_baseline: metres between the cameras' centres; max_offset: frames searched each way;
     temperature: τ of the likelihood exp(−cost/τ) (cost: SSIM+L1 error, 0–1); prior_power: a of p^a;
-    scale: the cost is computed at 1/scale of the image resolution."""
+    scale: the cost is computed at 1/scale of the image resolution; window: the cost is averaged over
+    window×window pixels of that grid (odd; 1 = per pixel)."""
 
     sources: int = 2
     min_baseline: float = 0.3
     max_baseline: float = 4.0
     max_offset: int = 10
-    temperature: float = 0.05
+    # chosen on training town 06 (AbsRel of the expected depth, docs/fused.md), never on 00
+    temperature: float = 0.02
     prior_power: float = 1.0
     scale: int = 4
+    window: int = 3
 
 
 def check_multiview_config(cfg: MultiviewConfig) -> MultiviewConfig:
@@ -60,6 +63,8 @@ def check_multiview_config(cfg: MultiviewConfig) -> MultiviewConfig:
         raise MonoMapError(f"--fused-multiview-prior-power: must be a number >= 0, got {cfg.prior_power}")
     if int(cfg.max_offset) != cfg.max_offset or cfg.max_offset < 1:
         raise MonoMapError(f"multiview max_offset: must be a positive integer (frames), got {cfg.max_offset}")
+    if int(cfg.window) != cfg.window or cfg.window < 1 or cfg.window % 2 == 0:
+        raise MonoMapError(f"multiview window: must be an odd positive integer (pixels), got {cfg.window}")
     if int(cfg.scale) != cfg.scale or cfg.scale < 1:
         raise MonoMapError(f"multiview scale: must be a positive integer, got {cfg.scale}")
     return cfg
@@ -152,17 +157,23 @@ def sweep_cost(target, sources: list, K: np.ndarray, T_src_tgt: list[np.ndarray]
     return cost, ident
 
 
-def likelihood(cost, ident, temperature: float):
+def likelihood(cost, ident, temperature: float, window: int = 1):
     """(log-likelihood (D,h,w) = −(c − min c)/τ, informative (h,w) bool) of a sweep's ``cost`` (D,h,w) and
-    ``identity`` (h,w): planes no source sees get the pixel's mean cost; a pixel is informative where at
-    least half the planes are seen and the best plane beats the unwarped sources."""
+    ``identity`` (h,w): planes no source sees get the pixel's mean cost, then costs and identity are averaged
+    over ``window``×``window`` pixels; a pixel is informative where at least half the planes are seen and the
+    best plane beats the unwarped sources."""
     import torch
+    import torch.nn.functional as F
 
     seen = torch.isfinite(cost)
     n_seen = seen.float().sum(0)
     c = torch.where(seen, cost, torch.zeros_like(cost))
     mean = c.sum(0) / n_seen.clamp_min(1)
     c = torch.where(seen, c, mean.unsqueeze(0))
+    if window > 1:
+        r = window // 2
+        c = F.avg_pool2d(F.pad(c.unsqueeze(0), (r, r, r, r), mode="replicate"), window, 1)[0]
+        ident = F.avg_pool2d(F.pad(ident[None, None], (r, r, r, r), mode="replicate"), window, 1)[0, 0]
     best = c.min(0).values
     informative = (n_seen * 2 >= cost.shape[0]) & (ident > best)
     return (best.unsqueeze(0) - c) / float(temperature), informative
@@ -264,7 +275,7 @@ class MultiviewPosterior:
         rel = [np.linalg.inv(seq.T_world_cam2(j)) @ T_t for j in srcs]
         with torch.no_grad():
             cost, ident = sweep_cost(tgt, [self.small_image(seq, j) for j in srcs], Ks, rel, self.bins.centres)
-            ll, info = likelihood(cost, ident, self.cfg.temperature)
+            ll, info = likelihood(cost, ident, self.cfg.temperature, int(self.cfg.window))
             step = int(pred.probs_step)
             prior = torch.as_tensor(np.ascontiguousarray(pred.probs, dtype=np.float32))
             size = tuple(prior.shape[1:])

@@ -44,6 +44,7 @@ FUSED_OPTIONS = (
     ("multiview", "neighbouring frames (0 = off, 1, 2) whose images sharpen each frame's depth distribution "
                   "(plane-sweep posterior, depth/multiview.py)"),
     ("multiview_temperature", "temperature of the multi-view photometric likelihood"),
+    ("subpixel", "1: voxels read the full-resolution depth bilinearly; 0: the nearest ray-grid pixel"),
 )
 
 def _add_integration_args(p: argparse.ArgumentParser) -> None:
