@@ -69,7 +69,7 @@ class FusedConfig:
     snap_step: int = 2
     multiview: int = 0
     multiview_temperature: float = 0.02
-    subpixel: int = 1
+    subpixel: int = 0
 
     def multiview_config(self):
         """The multi-view posterior's settings (:mod:`mono_map.depth.multiview`), None when it is off."""
