@@ -66,8 +66,8 @@ class FusedConfig:
     max_spread: float = 0.5
     lag: int = 10
     snap_window: float = 1.0
-    snap_step: int = 2
-    multiview: int = 0
+    snap_step: int = 1
+    multiview: int = 2
     multiview_temperature: float = 0.02
     subpixel: int = 0
 
