@@ -28,6 +28,7 @@ from mono_map.frames import parse_frames  # noqa: E402
 from mono_map.mapping.inputs import load_predictor  # noqa: E402
 from mono_map.mapping.pipeline import build_map, make_builders, run_builders  # noqa: E402
 from mono_map.depth.multiview import MultiviewConfig  # noqa: E402
+from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.fused import FusedConfig  # noqa: E402
 from mono_map.mapping.octree import tree_leaves  # noqa: E402
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor  # noqa: E402
@@ -63,6 +64,8 @@ def main(argv=None) -> int:
     p.add_argument("--oracle-edge-sigma", type=float, default=None)
     for name in GRID:
         p.add_argument("--" + name.replace("_", "-"), default=str(getattr(d, name)), help="comma list")
+    p.add_argument("--ray-step", type=int, default=None,
+                   help="the distribution half's and the fused surface's ray grid (default: DistributionConfig's)")
     p.add_argument("--no-baselines", action="store_true", help="no keep 0.8 / distribution / depth-gt rows")
     p.add_argument("--keep-multiview", action="store_true",
                    help="also a keep 0.8 map of the multi-view posterior (depth/multiview.py, its defaults)")
@@ -90,6 +93,7 @@ def main(argv=None) -> int:
     else:
         predictor = load_predictor(None if args.model == "shipped" else args.model)
     names, maps = [], []
+    dist = {} if args.ray_step is None else {"distribution": DistributionConfig(ray_step=args.ray_step)}
     if not args.no_baselines:
         names += ["mono keep 0.8", "mono, distribution"]
         maps += [dict(keep=0.8), dict(integrate="distribution")]
@@ -97,8 +101,9 @@ def main(argv=None) -> int:
         names.append("mono keep 0.8, multiview posterior")
         maps.append(dict(keep=0.8, multiview=MultiviewConfig()))
     for g in grid:
-        names.append("fused " + " ".join(f"{n} {getattr(g, n):g}" for n in GRID if getattr(g, n) != getattr(d, n)))
-        maps.append(dict(integrate="fused", fused=g))
+        names.append("fused " + " ".join(f"{n} {getattr(g, n):g}" for n in GRID if getattr(g, n) != getattr(d, n))
+                     + ("" if args.ray_step is None else f" ray_step {args.ray_step}"))
+        maps.append(dict(integrate="fused", fused=g, **dist))
     builders = make_builders(seq, [dict(kw, source="mono", predictor=predictor, stats_every=10**9) for kw in maps],
                              len(frames))
     run_builders(seq, builders, frames)
