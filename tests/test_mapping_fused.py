@@ -111,10 +111,13 @@ def fused_build(seq, predictor, frames, fcfg=FusedConfig(), dcfg=DCFG, observers
                      predictor=predictor, observers=observers, show_progress=False)
 
 
-def test_exact_depth_gives_the_depth_gt_surface_within_one_cell():
+@pytest.mark.parametrize("subpixel, ray_step", [(0, 1), (1, 1)])
+def test_exact_depth_gives_the_depth_gt_surface_within_one_cell(subpixel, ray_step):
     seq = Seq(6)
     gt = build_map(seq, MapJob.spec("depth-gt", range(6)), show_progress=False)
-    fused = fused_build(seq, LogNormalPredictor(seq.depth, 1e-4), range(6), FusedConfig(min_weight=1.0))
+    fused = fused_build(seq, LogNormalPredictor(seq.depth, 1e-4), range(6),
+                        FusedConfig(min_weight=1.0, subpixel=subpixel, snap_step=1),
+                        DistributionConfig(ray_step=ray_step, temperature=1.0))
     a, b = occupied_keys_of(fused.tree), occupied_keys_of(gt.tree)
     assert len(a) > 500
     near = within_one_cell(a, b)
@@ -259,3 +262,4 @@ def test_the_surface_streams_to_observers_as_it_refines():
     assert became[0] == became[1] == 0 and became[2] > 0 and became[4] > 0
     shown = sum(became) - sum(len(u.freed_keys_changed) for u in seen)
     assert shown == len(occupied_keys_of(fused.tree)) > 0
+

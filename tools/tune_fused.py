@@ -29,12 +29,14 @@ from mono_map.frames import parse_frames  # noqa: E402
 from mono_map.mapping.inputs import load_predictor  # noqa: E402
 from mono_map.mapping.jobs import MapJob  # noqa: E402
 from mono_map.mapping.pipeline import build_map, make_builders, run_builders  # noqa: E402
+from mono_map.depth.multiview import MultiviewConfig  # noqa: E402
+from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.fused import FusedConfig  # noqa: E402
 from mono_map.mapping.octree import tree_leaves  # noqa: E402
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor  # noqa: E402
 
 GRID = ("spread_ref", "min_weight", "trunc_sigma", "trunc_min", "trunc_max", "trunc_behind", "max_depth",
-        "max_spread", "lag", "snap_window", "snap_step")
+        "max_spread", "lag", "snap_window", "snap_step", "multiview", "multiview_temperature", "subpixel")
 
 
 def score(tree, ref, surf) -> dict:
@@ -64,7 +66,11 @@ def main(argv=None) -> int:
     p.add_argument("--oracle-edge-sigma", type=float, default=None)
     for name in GRID:
         p.add_argument("--" + name.replace("_", "-"), default=str(getattr(d, name)), help="comma list")
+    p.add_argument("--ray-step", type=int, default=None,
+                   help="the distribution half's and the fused surface's ray grid (default: DistributionConfig's)")
     p.add_argument("--no-baselines", action="store_true", help="no keep 0.8 / distribution / depth-gt rows")
+    p.add_argument("--keep-multiview", action="store_true",
+                   help="also a keep 0.8 map of the multi-view posterior (depth/multiview.py, its defaults)")
     p.add_argument("--allow-00", action="store_true", help="measure (not tune) on 00: one setting only")
     args = p.parse_args(argv)
     values = [[type(getattr(d, n))(float(v)) for v in getattr(args, n).split(",")] for n in GRID]
@@ -89,13 +95,19 @@ def main(argv=None) -> int:
     else:
         predictor = load_predictor(None if args.model == "shipped" else args.model)
     names, maps = [], []
+    dist = {} if args.ray_step is None else {"distribution": DistributionConfig(ray_step=args.ray_step)}
     if not args.no_baselines:
         names += ["mono keep 0.8", "mono, distribution"]
         maps += [dict(keep=0.8), dict(integrate="distribution")]
+    if args.keep_multiview:
+        names.append("mono keep 0.8, multiview posterior")
+        maps.append(dict(keep=0.8, multiview=MultiviewConfig()))
     for g in grid:
-        names.append("fused " + " ".join(f"{n} {getattr(g, n):g}" for n in GRID if getattr(g, n) != getattr(d, n)))
-        maps.append(dict(integrate="fused", fused=g))
-    builders = make_builders(seq, [dict(job=MapJob.spec("mono", frames, **kw), predictor=predictor, stats_every=10**9)
+        names.append("fused " + " ".join(f"{n} {getattr(g, n):g}" for n in GRID if getattr(g, n) != getattr(d, n))
+                     + ("" if args.ray_step is None else f" ray_step {args.ray_step}"))
+        maps.append(dict(integrate="fused", fused=g, **dist))
+    builders = make_builders(seq, [dict(job=MapJob.spec("mono", frames, **{k: v for k, v in kw.items() if k != "multiview"}),
+                                        multiview=kw.get("multiview"), predictor=predictor, stats_every=10**9)
                                    for kw in maps])
     run_builders(seq, builders, frames)
     lines = ["| map | acc. | cov. | occ. P / R / F1 | surface prec. | occupied cells | memory (MB) |",

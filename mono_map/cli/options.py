@@ -129,6 +129,10 @@ FUSED_OPTIONS = (
     ("lag", "frames after which a frame's pixels are snapped to the fused surface"),
     ("snap_window", "how far (metres) from a pixel's expected depth its ray looks for the fused surface"),
     ("snap_step", "snap every N-th ray of the --ray-step grid"),
+    ("multiview", "neighbouring frames (0 = off, 1, 2) whose images sharpen each frame's depth distribution "
+                  "(plane-sweep posterior, depth/multiview.py)"),
+    ("multiview_temperature", "temperature of the multi-view photometric likelihood"),
+    ("subpixel", "1: voxels read the full-resolution depth bilinearly; 0: the nearest ray-grid pixel"),
 )
 
 

@@ -25,11 +25,12 @@ from typing import Callable, Sequence
 import numpy as np
 
 from mono_map.depth.bins import DepthBins
+from mono_map.depth.multiview import MultiviewPosterior, check_multiview_config
 from mono_map.errors import MonoMapError
 from mono_map.mapping.distribution import CellUpdates, check_distribution_config
 from mono_map.mapping.distribution_frame import distribution_frame
 from mono_map.mapping.fused import SurfaceFusion, check_fused_config, due_surface_points, fuse_prediction
-from mono_map.mapping.inputs import FrameInputs, bin_edges, load_predictor, probs_steps
+from mono_map.mapping.inputs import FrameInputs, bin_edges, bins_of, load_predictor, probs_steps
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.nested import KeepGroup, nested_frame
 from mono_map.mapping.octree import coord_to_key, key_to_coord, pack_keys, sorted_unique, unpack_keys
@@ -110,7 +111,7 @@ class MapBuilder:
 
     def __init__(self, job, seq, predictor, observers: Sequence[Callable] = (), *,
                  depth_range: tuple[float, float], stats_every: int = 100, method: str = "batched",
-                 rank: str = "entropy"):
+                 rank: str = "entropy", multiview=None):
         self.job, self.seq, self.predictor, self.observers = job, seq, predictor, list(observers)
         self.source, self.keep, self.stride, self.rank = job.source, job.keep, job.stride, rank
         self.kind, self.integration = job.kind, job.integration
@@ -120,6 +121,9 @@ class MapBuilder:
         self.integrator = MapIntegrator(job.octomap, method=method)
         # fused: the surface's TSDF beside the free-space half
         self.fusion = SurfaceFusion(self.fcfg, job.octomap.resolution) if self.integration.fused else None
+        # the multi-view posterior (depth/multiview.py): a fused map's own setting, or any mono map's if given
+        mv = multiview or (self.fcfg.multiview_config() if self.fusion is not None else None)
+        self.multiview = MultiviewPosterior(mv, bins_of(predictor)) if mv is not None and self.kind.predicted else None
         self.surface_points = 0                    # fused: surface hits inserted (cells, summed over frames)
         self.group: KeepGroup | None = None   # keep maps whose frames share one ray cast (share_ray_casts)
         self.edges = bin_edges(predictor) if self.dist_mode else None
@@ -187,6 +191,9 @@ class MapBuilder:
         """Predict image_2's depth distribution, keep the lowest-entropy pixels, back-project them."""
         image = inputs.image()
         pred = inputs.prediction(self.predictor)
+        if self.multiview is not None:                 # once per frame for the maps of a pass that share it
+            pred = inputs.shared(("multiview", id(self.predictor), self.multiview.cfg),
+                                 lambda: self.multiview.refine(self.seq, i, pred))
         depth = np.asarray(pred.depth, dtype=np.float32)
         entropy = np.asarray(pred.entropy, dtype=np.float32)
         if depth.shape != image.shape[:2] or entropy.shape != image.shape[:2]:
@@ -306,17 +313,20 @@ class MapBuilder:
 
 def make_builder(seq, job, predictor=None, observers: Sequence[Callable] = (), *,
                  depth_range: tuple[float, float] | None = None, stats_every: int = 100, method: str = "batched",
-                 rank: str = "entropy") -> MapBuilder:
+                 rank: str = "entropy", multiview=None) -> MapBuilder:
     """A checked :class:`MapBuilder` of ``job`` (a :class:`~mono_map.mapping.jobs.MapJob`) over ``seq``.
     predictor: anything with ``predict(image) -> DepthPrediction`` or ``predict_frame(seq, i, image)``;
     None loads ``job.model``'s (:func:`~mono_map.mapping.inputs.load_predictor`; None → the shipped
     checkpoint). depth_range: valid predicted depths (metres), default the predictor's bin range (else
-    DepthBins' 1–80 m). Raises MonoMapError on bad input."""
+    DepthBins' 1–80 m). multiview: a MultiviewConfig applied to any mono map (e.g. a keep map,
+    for measuring); a fused map's is its own setting. Raises MonoMapError on bad input."""
     if job.stride < 1:
         raise MonoMapError(f"--stride: must be a positive integer, got {job.stride}")
     dist_mode = job.integration.distributional
     check_distribution_config(job.distribution)
     check_fused_config(job.fused)
+    if multiview is not None:
+        check_multiview_config(multiview)
     if dist_mode and method != "batched":
         raise MonoMapError(f"--integrate {job.integrate}: needs the batched integration method")
     if job.kind.predicted and not dist_mode:
@@ -328,4 +338,4 @@ def make_builder(seq, job, predictor=None, observers: Sequence[Callable] = (), *
         bins = getattr(predictor, "bins", None) or DepthBins()
         depth_range = (float(bins.min_depth), float(bins.max_depth))
     return MapBuilder(job, seq, predictor, observers, depth_range=depth_range, stats_every=stats_every,
-                      method=method, rank=rank)
+                      method=method, rank=rank, multiview=multiview)

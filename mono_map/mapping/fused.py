@@ -49,7 +49,11 @@ class FusedConfig:
     fused surface this many frames after it was fused (the views that follow it are in the surface; the
     end of the build snaps the rest); snap_window: how far (metres) from a pixel's expected depth the
     surface is looked for along its ray; snap_step: every snap_step-th pixel row and column of the ray grid is
-    snapped (each still hits a cell of its own at 0.2 m cells beyond a few metres)."""
+    snapped (each still hits a cell of its own at 0.2 m cells beyond a few metres); multiview: neighbouring frames
+    (0 = off, 1 or 2) whose images sharpen each frame's distribution before both halves use it (the plane-sweep
+    posterior of :mod:`mono_map.depth.multiview`) and multiview_temperature its likelihood's τ; subpixel: 1 = each
+    voxel reads the depth bilinearly at its projection into the full-resolution expected depth (nearest pixel
+    across a depth edge), 0 = the nearest pixel of the ray grid."""
 
     # chosen on training town 06 frames 0-199 (docs/fused.md), never on 00
     spread_ref: float = 0.15
@@ -62,7 +66,17 @@ class FusedConfig:
     max_spread: float = 0.5
     lag: int = 10
     snap_window: float = 1.0
-    snap_step: int = 2
+    snap_step: int = 1
+    multiview: int = 2
+    multiview_temperature: float = 0.02
+    subpixel: int = 0
+
+    def multiview_config(self):
+        """The multi-view posterior's settings (:mod:`mono_map.depth.multiview`), None when it is off."""
+        from mono_map.depth.multiview import MultiviewConfig
+
+        return MultiviewConfig(sources=int(self.multiview), temperature=self.multiview_temperature) \
+            if self.multiview else None
 
 
 def check_fused_config(cfg: FusedConfig) -> FusedConfig:
@@ -85,6 +99,11 @@ def check_fused_config(cfg: FusedConfig) -> FusedConfig:
         raise MonoMapError(f"--fused-snap-step: must be a positive integer, got {cfg.snap_step}")
     if int(cfg.lag) != cfg.lag or cfg.lag < 0:
         raise MonoMapError(f"--fused-lag: must be a non-negative integer (frames), got {cfg.lag}")
+    if int(cfg.multiview) != cfg.multiview or cfg.multiview not in (0, 1, 2):
+        raise MonoMapError(f"--fused-multiview: neighbours per frame must be 0 (off), 1 or 2, got {cfg.multiview}")
+    positive("fused-multiview-temperature", cfg.multiview_temperature)
+    if cfg.subpixel not in (0, 1):
+        raise MonoMapError(f"--fused-subpixel: must be 0 or 1, got {cfg.subpixel}")
     return cfg
 
 
@@ -127,10 +146,13 @@ class SurfaceFusion:
         self.pending: list[tuple] = []     # frames fused, not yet snapped: (depth grid, K of the grid, pose)
 
     def integrate(self, depth: np.ndarray, weight: np.ndarray, trunc: np.ndarray, K: np.ndarray,
-                  T_world_cam: np.ndarray) -> int:
+                  T_world_cam: np.ndarray, fine: tuple | None = None) -> int:
         """Fuse one depth image: ``depth`` (H, W) float32 z-depth in metres (0 = no surface), per-pixel
         ``weight`` (H, W) and truncation ``trunc`` (H, W, metres), pinhole ``K`` (3×3) of this pixel grid and
-        the camera pose ``T_world_cam`` (4×4). Returns the number of voxels updated."""
+        the camera pose ``T_world_cam`` (4×4). ``fine``: (depth (H', W') at a finer grid, its K, step: pixel
+        (step·j, step·i) of it is pixel (j, i) of ``depth``) — each voxel then reads its depth bilinearly there
+        (the nearest fine pixel where the four neighbours differ by more than 5 %; none where one is 0), its
+        weight and truncation at the coarse pixel holding it. Returns the number of voxels updated."""
         o3d, o3c = self.o3d, self.o3c
         depth = np.ascontiguousarray(depth, dtype=np.float32)
         self.frames += 1
@@ -157,12 +179,32 @@ class SurfaceFusion:
         z = pc[:, 2]
         front = z > 1e-3
         zs = np.where(front, z, np.float32(1.0))
-        u = np.rint(np.float32(K[0, 0]) * pc[:, 0] / zs + np.float32(K[0, 2])).astype(np.int64)
-        v = np.rint(np.float32(K[1, 1]) * pc[:, 1] / zs + np.float32(K[1, 2])).astype(np.int64)
-        ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        sel = np.flatnonzero(ok)
-        u, v, z = u[sel], v[sel], z[sel]
-        d = depth[v, u]
+        if fine is None:
+            u = np.rint(np.float32(K[0, 0]) * pc[:, 0] / zs + np.float32(K[0, 2])).astype(np.int64)
+            v = np.rint(np.float32(K[1, 1]) * pc[:, 1] / zs + np.float32(K[1, 2])).astype(np.int64)
+            ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            sel = np.flatnonzero(ok)
+            u, v, z = u[sel], v[sel], z[sel]
+            d = depth[v, u]
+        else:
+            fd, Kf, step = fine
+            fh, fw = fd.shape
+            uf = np.float32(Kf[0, 0]) * pc[:, 0] / zs + np.float32(Kf[0, 2])
+            vf = np.float32(Kf[1, 1]) * pc[:, 1] / zs + np.float32(Kf[1, 2])
+            ok = front & (uf >= 0) & (uf <= fw - 1) & (vf >= 0) & (vf <= fh - 1)
+            sel = np.flatnonzero(ok)
+            uf, vf, z = uf[sel], vf[sel], z[sel]
+            u0 = np.minimum(np.floor(uf).astype(np.int64), fw - 2)
+            v0 = np.minimum(np.floor(vf).astype(np.int64), fh - 2)
+            a, b = uf - u0, vf - v0
+            d00, d01, d10, d11 = fd[v0, u0], fd[v0, u0 + 1], fd[v0 + 1, u0], fd[v0 + 1, u0 + 1]
+            lo = np.minimum(np.minimum(d00, d01), np.minimum(d10, d11))
+            hi = np.maximum(np.maximum(d00, d01), np.maximum(d10, d11))
+            bil = (d00 * (1 - a) + d01 * a) * (1 - b) + (d10 * (1 - a) + d11 * a) * b
+            near = fd[np.rint(vf).astype(np.int64), np.rint(uf).astype(np.int64)]
+            d = np.where(lo <= 0, np.float32(0.0), np.where(hi > 1.05 * lo, near, bil)).astype(np.float32)
+            u = np.minimum(np.rint(uf / step).astype(np.int64), w - 1)       # the coarse pixel: weight, band
+            v = np.minimum(np.rint(vf / step).astype(np.int64), h - 1)
         tau = trunc[v, u]
         sdf = d - z
         keep = (d > 0) & (sdf >= -self.cfg.trunc_behind * tau)
@@ -282,7 +324,12 @@ def fuse_prediction(fusion: SurfaceFusion, pred, valid: np.ndarray, K: np.ndarra
     trunc = np.clip(cfg.trunc_sigma * d * spread, cfg.trunc_min * fusion.res, cfg.trunc_max).astype(np.float32)
     Ks = np.asarray(K, dtype=np.float64).copy()
     Ks[:2] /= s                                                      # pixel (s·j, s·i) is grid pixel (j, i)
-    fusion.integrate(d, pixel_weights(spread, cfg), trunc, Ks, T_world_cam2)
+    fine = None
+    if cfg.subpixel:                                                 # the voxels read the full-resolution depth
+        full = np.asarray(pred.depth, dtype=np.float32)
+        okf = np.repeat(np.repeat(ok, s, axis=0), s, axis=1)[:full.shape[0], :full.shape[1]]
+        fine = (np.where(okf & (full > 0), full, np.float32(0.0)), np.asarray(K, dtype=np.float64), s)
+    fusion.integrate(d, pixel_weights(spread, cfg), trunc, Ks, T_world_cam2, fine)
     q = int(cfg.snap_step)                                            # the pixels snapped later
     Kq = Ks.copy()
     Kq[:2] /= q

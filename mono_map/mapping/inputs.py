@@ -41,10 +41,15 @@ def run_predictor(predictor, seq, i: int, image: np.ndarray, with_probs: bool = 
     return predictor.predict(image, **kw)
 
 
+def bins_of(predictor) -> DepthBins:
+    """The DepthBins of a predictor (DepthBins' defaults if it has none)."""
+    b = getattr(predictor, "bins", None) or DepthBins()
+    return DepthBins(b.num_bins, b.min_depth, b.max_depth)
+
+
 def bin_edges(predictor) -> np.ndarray:
     """(K+1,) depth-bin edges (metres) of a predictor (DepthBins' defaults if it has none)."""
-    b = getattr(predictor, "bins", None) or DepthBins()
-    return DepthBins(b.num_bins, b.min_depth, b.max_depth).edges
+    return bins_of(predictor).edges
 
 
 class FrameInputs:
@@ -84,10 +89,11 @@ class FrameInputs:
 
 def probs_steps(builders: Sequence) -> dict[int, int]:
     """Predictor id → the pixel step at which the distribution-mode builders need its bin probabilities
-    (the greatest common divisor of their ray steps, so one prediction serves them all)."""
+    (the greatest common divisor of their ray steps, so one prediction serves them all); a mono map with the
+    multi-view posterior needs them too (at its ray step)."""
     steps: dict[int, int] = {}
     for b in builders:
-        if b.dist_mode:
+        if b.dist_mode or getattr(b, "multiview", None) is not None:
             k = id(b.predictor)
             steps[k] = math.gcd(steps.get(k, 0), int(b.dcfg.ray_step))
     return steps

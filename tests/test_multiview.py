@@ -1,0 +1,154 @@
+"""The multi-view posterior (depth/multiview.py): a plane sweep over the model's bins from neighbouring frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mono_map.depth.bins import DepthBins
+from mono_map.depth.inference import DepthPrediction
+from mono_map.depth.multiview import (MultiviewConfig, MultiviewPosterior, check_multiview_config, plane_warp,
+                                      scaled_intrinsics)
+from mono_map.depth.photometric import warp
+from mono_map.errors import MonoMapError
+from mono_map.mapping.fused import FusedConfig, check_fused_config
+
+H, W = 64, 160
+K = np.array([[120.0, 0.0, 80.0], [0.0, 120.0, 32.0], [0.0, 0.0, 1.0]])
+BINS = DepthBins()
+WALL = 10.0
+
+
+def texture(x, y):
+    """A smooth random-looking texture of world (x, y) metres, in [0, 1]."""
+    rng = np.random.default_rng(3)
+    t = np.zeros_like(x)
+    for _ in range(12):
+        fx, fy, ph = rng.uniform(2, 12), rng.uniform(2, 12), rng.uniform(0, 6.3)
+        t += np.sin(fx * x + ph) * np.cos(fy * y + 2 * ph)
+    return 0.5 + 0.5 * t / 12 * 3
+
+
+class WallSeq:
+    """A camera sliding sideways (``step`` m a frame along x) in front of a textured fronto-parallel wall at
+    z = WALL; ``pose_scale`` multiplies the reported translations (wrong-scale poses); ``moving``: the wall
+    moves with the camera (every image the same)."""
+
+    def __init__(self, n=5, step=0.5, pose_scale=1.0, moving=False):
+        self.n, self.step, self.pose_scale, self.moving = n, step, pose_scale, moving
+        self.calib = type("Calib", (), {"K2": K})()
+
+    def __len__(self):
+        return self.n
+
+    def T_world_cam2(self, i):
+        T = np.eye(4)
+        T[0, 3] = self.step * i * self.pose_scale
+        return T
+
+    def image(self, i):
+        v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+        cx = 0.0 if self.moving else self.step * i
+        x = cx + (u - K[0, 2]) / K[0, 0] * WALL
+        y = (v - K[1, 2]) / K[1, 1] * WALL
+        g = np.clip(texture(x, y), 0, 1)
+        return (np.repeat(g[..., None], 3, -1) * 255).round().astype(np.uint8)
+
+
+def flat_prediction(step=1):
+    probs = np.full((BINS.num_bins, H // step, W // step), 1.0 / BINS.num_bins, np.float32)
+    depth = np.full((H, W), float(np.exp(BINS.log_centres.mean())), np.float32)
+    return DepthPrediction(depth=depth, entropy=np.full((H, W), np.log(BINS.num_bins), np.float32), probs=probs,
+                           probs_step=step)
+
+
+def modes(seq, step=1, **kw):
+    r = MultiviewPosterior(MultiviewConfig(scale=1, **kw), BINS)
+    q = r.refine(seq, 2, flat_prediction(step))
+    return np.asarray(q.probs).argmax(0), r, q
+
+
+def test_plane_warp_is_photometric_warp_at_a_constant_depth():
+    rng = np.random.default_rng(0)
+    src = torch.as_tensor(rng.uniform(0, 1, (1, H, W)).astype(np.float32))
+    T = np.eye(4)
+    T[:3, 3] = [0.4, -0.05, 0.3]
+    c, s = np.cos(0.03), np.sin(0.03)
+    T[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    depths = np.array([3.0, 11.0])
+    mine, ok = plane_warp(src, K, T, depths)
+    for k, d in enumerate(depths):
+        ref, ref_ok = warp(src.unsqueeze(0), torch.full((1, 1, H, W), float(d)), torch.as_tensor(K[None]).float(),
+                           torch.as_tensor(T[None]).float())
+        assert torch.equal(ok[k], ref_ok[0, 0])
+        assert torch.allclose(mine[k][:, ok[k]], ref[0][:, ok[k]], atol=1e-3)
+        assert ok[k].float().mean() > 0.5
+
+
+def test_true_poses_put_the_posterior_mode_at_the_true_bin_where_the_prior_is_flat():
+    mode, r, q = modes(WallSeq())
+    true_bin = int(np.searchsorted(BINS.edges, WALL) - 1)
+    inner = mode[8:-8, 20:-20]
+    assert r.last_informative > 0.8
+    assert np.mean(np.abs(inner - true_bin) <= 1) > 0.9
+    # the expected depth follows the posterior (a sharp likelihood: the flat prior has no say)
+    _, _, q = modes(WallSeq(), temperature=0.005)
+    assert abs(float(np.median(q.depth[8:-8, 20:-20])) - WALL) < 0.1 * WALL
+
+
+def test_the_likelihood_uses_metric_poses():
+    """The same images with poses claiming twice the baseline put the wall twice as far."""
+    mode, _, _ = modes(WallSeq(pose_scale=2.0))
+    far_bin = int(np.searchsorted(BINS.edges, 2 * WALL) - 1)
+    assert np.mean(np.abs(mode[8:-8, 20:-20] - far_bin) <= 1) > 0.9
+
+
+def test_the_posterior_is_read_at_the_priors_pixels():
+    mode, _, q = modes(WallSeq(), step=2)
+    true_bin = int(np.searchsorted(BINS.edges, WALL) - 1)
+    assert mode.shape == (H // 2, W // 2)
+    assert np.mean(np.abs(mode[4:-4, 10:-10] - true_bin) <= 1) > 0.9
+
+
+def test_a_static_camera_or_a_scene_moving_with_it_leaves_the_prior_unchanged():
+    pred = flat_prediction()
+    r = MultiviewPosterior(MultiviewConfig(scale=1), BINS)
+    assert r.refine(WallSeq(step=0.0), 2, pred) is pred            # no neighbour with a baseline
+    assert r.last_informative == 0.0
+    q = r.refine(WallSeq(moving=True), 2, pred)                    # auto-masked: unwarped sources match
+    assert r.last_informative < 0.05
+    same = np.all(np.asarray(q.probs) == pred.probs, axis=0)
+    assert same.mean() > 0.95
+    # a peaked prior survives a flat likelihood: the posterior of a confident pixel keeps its mode
+    probs = np.zeros_like(pred.probs)
+    probs[20] = 1.0
+    peaked = DepthPrediction(depth=pred.depth, entropy=pred.entropy, probs=probs, probs_step=1)
+    assert np.all(np.asarray(r.refine(WallSeq(moving=True), 2, peaked).probs).argmax(0) == 20)
+
+
+def test_scaled_intrinsics_keep_pixel_centres():
+    Ks = scaled_intrinsics(K, (H, W), (H // 4, W // 4))
+    # the full image's pixel u = 4j + 1.5 is the centre of reduced pixel j
+    x = np.array([0.3, -0.2, 1.0])
+    full = K @ x
+    small = Ks @ x
+    assert np.allclose(small[:2] / small[2], (full[:2] / full[2] + 0.5) / 4 - 0.5)
+
+
+@pytest.mark.parametrize("kw, option", [({"sources": 3}, "--fused-multiview"),
+                                        ({"temperature": 0.0}, "--fused-multiview-temperature"),
+                                        ({"min_baseline": 5.0}, "--fused-multiview-min-baseline"),
+                                        ({"prior_power": -1.0}, "--fused-multiview-prior-power")])
+def test_bad_multiview_settings_are_one_line(kw, option):
+    with pytest.raises(MonoMapError, match="^" + option) as e:
+        check_multiview_config(MultiviewConfig(**kw))
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("field, value, option", [("multiview", 3, "--fused-multiview"),
+                                                  ("multiview", 1.5, "--fused-multiview"),
+                                                  ("multiview_temperature", -1.0, "--fused-multiview-temperature")])
+def test_bad_fused_multiview_settings_are_one_line(field, value, option):
+    with pytest.raises(MonoMapError, match="^" + option + ":"):
+        check_fused_config(FusedConfig(**{field: value}))
