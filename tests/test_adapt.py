@@ -118,6 +118,13 @@ def test_sources_by_baseline_not_offset():
     assert src[3] == [1, 6]           # the stopped frames look past the stop
     assert all(abs(x[i] - x[j]) >= 0.3 for j, s in src.items() for i in s)
     assert 0 not in choose_sources(pos, 0.3, 0.5, 10)     # no neighbour within 0.3-0.5 m
+    two = choose_sources(pos, 0.3, 4.0, 10, per_side=2)   # a second source per side at >= 2x the baseline
+    assert two[0] == [1, 2] and two[6] == [1, 5, 7] and two[3] == [1, 6]
+    for j, s in two.items():
+        for side in ([i for i in s if i < j][::-1], [i for i in s if i > j]):
+            b = [abs(x[i] - x[j]) for i in side]
+            assert len(b) <= 2 and all(b1 >= 2 * b0 - 1e-9 for b0, b1 in zip(b, b[1:]))
+    assert all(choose_sources(pos, 0.3, 4.0, 10, per_side=1)[j] == s for j, s in src.items())
     assert held_out(list(range(20))) == [5, 15] and held_out([1, 2]) == []
 
 

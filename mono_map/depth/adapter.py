@@ -63,16 +63,21 @@ class Adapter:
         depth = F.interpolate(depth, size=size, mode="bilinear", align_corners=False)
         return depth.clamp(self.bins.min_depth, self.bins.max_depth), beyond_logit
 
+    def source_lists(self, targets: list[int]) -> list[list[int]]:
+        """Each target's sources, padded to 2·per_side by repeating its own (the loss is a minimum over them)."""
+        n = max(2, 2 * self.cfg.per_side)
+        return [[self.sources[t][k % len(self.sources[t])] for k in range(n)] for t in targets]
+
     def batch(self, targets: list[int]):
-        """Network inputs (B,3,H,W); at the loss resolution the targets, two sources each (one side repeated if
-        only one exists), their poses T_src_tgt (B,4,4) and the pixels that count (content, not sky)."""
+        """Network inputs (B,3,H,W); at the loss resolution the targets, 2·per_side sources each (repeated if
+        fewer exist), their poses T_src_tgt (B,4,4) and the pixels that count (content, not sky)."""
         f = self.frames
         x = to_tensor(f.images[targets])
         tgt = to_tensor(self.small[targets])
-        srcs = [[self.sources[t][0], self.sources[t][-1]] for t in targets]
-        sources = [to_tensor(self.small[[s[k] for s in srcs]]) for k in (0, 1)]
+        srcs = self.source_lists(targets)
+        sources = [to_tensor(self.small[[s[k] for s in srcs]]) for k in range(len(srcs[0]))]
         poses = [torch.as_tensor(np.stack([np.linalg.inv(f.poses[s[k]]) @ f.poses[t] for s, t in zip(srcs, targets)]),
-                                 dtype=torch.float32) for k in (0, 1)]
+                                 dtype=torch.float32) for k in range(len(srcs[0]))]
         mask = self.content.expand(len(targets), 1, *tgt.shape[-2:])
         if self.base_beyond is not None:
             sky = F.interpolate(self.base_beyond[targets], size=tgt.shape[-2:], mode="nearest") > self.cfg.sky_threshold
@@ -97,10 +102,9 @@ class Adapter:
         the network's distribution p (softmax of the bin logits, as it is read) at stride 4, mean over the
         pixels the cost volume holds for (not sky, not padding, not auto-masked): the whole distribution is
         fitted to the multi-view evidence, not only its expectation."""
-        f = self.frames
         tgt = to_tensor(self.tiny[targets])
-        srcs = [[self.sources[t][0], self.sources[t][-1]] for t in targets]
-        sources = [to_tensor(self.tiny[[s[k] for s in srcs]]) for k in (0, 1)]
+        srcs = self.source_lists(targets)
+        sources = [to_tensor(self.tiny[[s[k] for s in srcs]]) for k in range(len(srcs[0]))]
         depths = torch.as_tensor(self.bins.centres, dtype=torch.float32)
         costs, ident = photometric.bin_costs(tgt, sources, depths, self.K4.expand(len(targets), 3, 3), poses)
         q, ok = photometric.cost_targets(costs, ident, self.cfg.bin_temperature)

@@ -84,6 +84,8 @@ def register(subparsers) -> None:
     p.add_argument("--max-baseline", type=float, default=d.max_baseline, help=f"... at most (default {d.max_baseline:g})")
     p.add_argument("--max-offset", type=int, default=d.max_offset,
                    help=f"sources are searched up to this many frames before and after a target (default {d.max_offset})")
+    p.add_argument("--per-side", type=int, default=d.per_side,
+                   help=f"sources before and after each target, each at >= 2x the previous baseline (default {d.per_side})")
     p.add_argument("--loss-scale", type=int, default=d.loss_scale, choices=(1, 2, 4),
                    help=f"photometric loss at 1/N of the network input size (default {d.loss_scale})")
     p.add_argument("--trim", type=float, default=d.trim,
@@ -360,7 +362,7 @@ def run_adapt(args) -> int:
     if args.threads < 1:
         raise MonoMapError(f"--threads: must be >= 1, got {args.threads}")
     cfg = AdaptConfig(steps=args.steps, lr=args.lr, batch_size=args.batch_size, min_baseline=args.min_baseline,
-                      max_baseline=args.max_baseline, max_offset=args.max_offset, loss_scale=args.loss_scale,
+                      max_baseline=args.max_baseline, max_offset=args.max_offset, per_side=args.per_side, loss_scale=args.loss_scale,
                       trim=args.trim,
                       replay=args.replay, replay_seq=args.replay_seq,
                       bin_weight=args.bin_weight, bin_temperature=args.bin_temperature,
