@@ -226,6 +226,16 @@ def test_bin_loss_fits_the_distribution(tiny_root, tiny_ckpt, tmp_path):
         AdaptConfig(bin_temperature=0).validate()
 
 
+def test_decoder_only_keeps_the_encoder_and_more_sources_run(tiny_root, tiny_ckpt, tmp_path):
+    base, _ = load_checkpoint(tiny_ckpt)
+    run(tiny_root, tiny_ckpt, tmp_path, 2, "s", "o", train_encoder=False, per_side=2)
+    _, w = last_weights(tmp_path / "s")
+    b = base.state_dict()
+    enc = [k for k in w if k.startswith("encoder.") and w[k].is_floating_point()]
+    assert enc and all(torch.equal(w[k], b[k]) for k in enc)
+    assert not all(torch.equal(w[k], b[k]) for k in w if not k.startswith("encoder."))
+
+
 def test_a_corrupt_saved_state_starts_the_run_again(tiny_root, tiny_ckpt, tmp_path):
     run(tiny_root, tiny_ckpt, tmp_path, 1, "s", "o")
     state = next((tmp_path / "s").glob("*/state.pt"))

@@ -54,6 +54,7 @@ class AdaptConfig:
     loss_scale: int = 2              # photometric loss at 1/loss_scale of the network input (1 or 2)
     bin_weight: float = 0.0          # weight of KL(cost-volume soft targets ‖ the bin distribution), 0 = off
     bin_temperature: float = 0.02    # photometric error scale of those soft targets
+    train_encoder: bool = True       # False: the encoder stays the base model's, only the decoder and head adapt
     seed: int = 0
     precision: str = "fp32"          # "bf16": bfloat16 autocast of the network's forward pass
 
@@ -247,6 +248,9 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
     if model.cfg.beyond:
         base_beyond = base_beyond_probs(model, data.images, cfg.precision)
     replay = load_replay(replay_seq, H, W, cfg.replay_frames) if replay_seq is not None else None
+    if not cfg.train_encoder:
+        for p in model.encoder.parameters():
+            p.requires_grad_(False)
     adapter = Adapter(model, base_beyond, data, sources, cfg, replay)
     adapter.train_targets = [t for t in targets if t not in heldout] or targets
 
@@ -283,7 +287,8 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
             recent = losses[-cfg.eval_every:]
             curve.append({"step": done, "heldout_photometric": err,
                           "train_photometric": float(np.mean([r["photometric"] for r in recent])),
-                          "used_pixels": float(np.mean([r["used"] for r in recent]))})
+                          "used_pixels": float(np.mean([r["used"] for r in recent])),
+                          **({"train_bins_kl": float(np.mean([r["bins"] for r in recent]))} if cfg.bin_weight else {})})
             if not heldout or err < best["error"]:
                 best = {"error": err, "step": done, "state": copy_state(model)}
             save_state(state_path, {"step": done, "model": model.state_dict(), "optimizer": adapter.optimizer.state_dict(),

@@ -99,6 +99,7 @@ def register(subparsers) -> None:
                         f"(default {d.bin_weight:g})")
     p.add_argument("--bin-temperature", type=float, default=d.bin_temperature,
                    help=f"photometric-error scale of those soft targets (default {d.bin_temperature:g})")
+    p.add_argument("--decoder-only", action="store_true", help="keep the encoder's weights, adapt the decoder and head")
     p.add_argument("--replay-root", default=None, help="data root of --replay-seq (default: --data-root)")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"steps between held-out photometric checks (the stopping rule; default {d.eval_every})")
@@ -365,7 +366,7 @@ def run_adapt(args) -> int:
                       max_baseline=args.max_baseline, max_offset=args.max_offset, per_side=args.per_side, loss_scale=args.loss_scale,
                       trim=args.trim,
                       replay=args.replay, replay_seq=args.replay_seq,
-                      bin_weight=args.bin_weight, bin_temperature=args.bin_temperature,
+                      train_encoder=not args.decoder_only, bin_weight=args.bin_weight, bin_temperature=args.bin_temperature,
                       eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision())
     cfg.validate()
     selection = parse_frames(args.frames) if args.frames is not None else None   # None: adapt's default
