@@ -82,6 +82,8 @@ def register(subparsers) -> None:
     p.add_argument("--max-baseline", type=float, default=d.max_baseline, help=f"... at most (default {d.max_baseline:g})")
     p.add_argument("--max-offset", type=int, default=d.max_offset,
                    help=f"sources are searched up to this many frames before and after a target (default {d.max_offset})")
+    p.add_argument("--per-side", type=int, default=d.per_side,
+                   help=f"sources before and after each target, each at >= 2x the previous baseline (default {d.per_side})")
     p.add_argument("--loss-scale", type=int, default=d.loss_scale, choices=(1, 2, 4),
                    help=f"photometric loss at 1/N of the network input size (default {d.loss_scale})")
     p.add_argument("--trim", type=float, default=d.trim,
@@ -90,6 +92,12 @@ def register(subparsers) -> None:
                    help="weight of supervised replay on --replay-seq, relative to the photometric loss at the start "
                         f"(default {d.replay:g} = off)")
     p.add_argument("--replay-seq", default=d.replay_seq, help="synthetic training sequence for replay (e.g. 06)")
+    p.add_argument("--bin-weight", type=float, default=d.bin_weight,
+                   help="weight of the cost volume over the bins as soft targets of the whole distribution "
+                        f"(default {d.bin_weight:g})")
+    p.add_argument("--bin-temperature", type=float, default=d.bin_temperature,
+                   help=f"photometric-error scale of those soft targets (default {d.bin_temperature:g})")
+    p.add_argument("--decoder-only", action="store_true", help="keep the encoder's weights, adapt the decoder and head")
     p.add_argument("--replay-root", default=None, help="data root of --replay-seq (default: --data-root)")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"steps between held-out photometric checks (the stopping rule; default {d.eval_every})")
@@ -350,9 +358,10 @@ def run_adapt(args) -> int:
 
     check_threads(args.threads)
     cfg = AdaptConfig(steps=args.steps, lr=args.lr, batch_size=args.batch_size, min_baseline=args.min_baseline,
-                      max_baseline=args.max_baseline, max_offset=args.max_offset, loss_scale=args.loss_scale,
+                      max_baseline=args.max_baseline, max_offset=args.max_offset, per_side=args.per_side, loss_scale=args.loss_scale,
                       trim=args.trim,
                       replay=args.replay, replay_seq=args.replay_seq,
+                      train_encoder=not args.decoder_only, bin_weight=args.bin_weight, bin_temperature=args.bin_temperature,
                       eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision())
     cfg.validate()
     selection = parse_frames(args.frames) if args.frames is not None else None   # None: adapt's default

@@ -42,6 +42,7 @@ class AdaptConfig:
     min_baseline: float = 0.3        # m: a source must be at least this far from the target camera
     max_baseline: float = 4.0        # m: ... and at most this far
     max_offset: int = 10             # frames: sources searched up to this many frames before and after
+    per_side: int = 1                # sources per side, each at >= 2x the previous one's baseline
     smoothness: float = 1e-3         # edge-aware smoothness weight
     beyond_weight: float = 1.0       # KL of p(no surface) to the base model's
     sky_threshold: float = 0.5       # base p(no surface) above this: no photometric loss
@@ -51,6 +52,9 @@ class AdaptConfig:
     eval_every: int = 25             # steps between held-out evaluations (and saved states)
     trim: float = 0.0                # leave out this fraction of the highest-error pixels of a batch
     loss_scale: int = 2              # photometric loss at 1/loss_scale of the network input (1 or 2)
+    bin_weight: float = 0.0          # weight of KL(cost-volume soft targets ‖ the bin distribution), 0 = off
+    bin_temperature: float = 0.02    # photometric error scale of those soft targets
+    train_encoder: bool = True       # False: the encoder stays the base model's, only the decoder and head adapt
     seed: int = 0
     precision: str = "fp32"          # "bf16": bfloat16 autocast of the network's forward pass
 
@@ -62,11 +66,14 @@ class AdaptConfig:
                   (self.max_baseline > self.min_baseline, "--max-baseline",
                    f"must exceed --min-baseline ({self.min_baseline} m), got {self.max_baseline}"),
                   (self.max_offset >= 1, "max_offset", f"must be >= 1, got {self.max_offset}"),
+                  (self.per_side >= 1, "--per-side", f"must be >= 1, got {self.per_side}"),
                   (self.replay >= 0, "--replay", f"must be >= 0, got {self.replay}"),
                   (not self.replay or bool(self.replay_seq), "--replay", "needs --replay-seq (a synthetic training sequence)"),
                   (self.replay_seq != "00", "--replay-seq", "00 is the held-out evaluation sequence, never trained on"),
                   (0 <= self.trim < 1, "--trim", f"must be in [0, 1), got {self.trim}"),
                   (self.loss_scale in (1, 2, 4), "loss_scale", f"must be 1, 2 or 4, got {self.loss_scale}"),
+                  (self.bin_weight >= 0, "--bin-weight", f"must be >= 0, got {self.bin_weight}"),
+                  (self.bin_temperature > 0, "--bin-temperature", f"must be > 0, got {self.bin_temperature}"),
                   (self.eval_every >= 1, "eval_every", f"must be >= 1, got {self.eval_every}"),
                   (self.precision in ("fp32", "bf16"), "--precision", f"must be fp32 or bf16, got {self.precision}")]
         for ok, option, why in checks:
@@ -81,26 +88,30 @@ class AdaptConfig:
 
 
 # ------------------------------------------------------------------ sources
-def choose_sources(positions: np.ndarray, min_baseline: float, max_baseline: float, max_offset: int
-                   ) -> dict[int, list[int]]:
+def choose_sources(positions: np.ndarray, min_baseline: float, max_baseline: float, max_offset: int,
+                   per_side: int = 1) -> dict[int, list[int]]:
     """For every frame j (rows of ``positions``, camera centres in metres) the nearest frame before and the
     nearest after (within ``max_offset`` positions of the list) whose baseline lies in
-    [min_baseline, max_baseline]; frames with no such neighbour are left out."""
+    [min_baseline, max_baseline]; with ``per_side`` = n > 1 up to n per side, each at least twice the previous
+    one's baseline (a wider baseline for far surfaces). In frame order; frames with no such neighbour are
+    left out."""
     n = len(positions)
     out = {}
     for j in range(n):
         found = []
         for direction in (-1, 1):
+            need, side = min_baseline, []
             for k in range(1, max_offset + 1):
                 i = j + direction * k
-                if not 0 <= i < n:
+                if not 0 <= i < n or len(side) == per_side:
                     break
                 b = float(np.linalg.norm(positions[i] - positions[j]))
                 if b > max_baseline:
                     break
-                if b >= min_baseline:
-                    found.append(i)
-                    break
+                if b >= need:
+                    side.append(i)
+                    need = max(2 * b, min_baseline)
+            found += side[::-1] if direction == -1 else side
         if found:
             out[j] = found
     return out
@@ -203,7 +214,7 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
     if len(indices) < 2:
         raise MonoMapError(f"--frames: adapt needs at least 2 frames of a moving camera, got {len(indices)}")
     centres = np.stack([seq.T_world_cam2(i)[:3, 3] for i in indices])
-    sources = choose_sources(centres, cfg.min_baseline, cfg.max_baseline, cfg.max_offset)
+    sources = choose_sources(centres, cfg.min_baseline, cfg.max_baseline, cfg.max_offset, cfg.per_side)
     if not sources:
         steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)
         raise MonoMapError(f"{seq.path}: too little motion to adapt: no two frames within {cfg.max_offset} frames "
@@ -235,6 +246,9 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
     if model.cfg.beyond:
         base_beyond = base_beyond_probs(model, data.images, cfg.precision)
     replay = load_replay(replay_seq, H, W, cfg.replay_frames) if replay_seq is not None else None
+    if not cfg.train_encoder:
+        for p in model.encoder.parameters():
+            p.requires_grad_(False)
     adapter = Adapter(model, base_beyond, data, sources, cfg, replay)
     adapter.train_targets = [t for t in targets if t not in heldout] or targets
 
@@ -271,7 +285,8 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
             recent = losses[-cfg.eval_every:]
             curve.append({"step": done, "heldout_photometric": err,
                           "train_photometric": float(np.mean([r["photometric"] for r in recent])),
-                          "used_pixels": float(np.mean([r["used"] for r in recent]))})
+                          "used_pixels": float(np.mean([r["used"] for r in recent])),
+                          **({"train_bins_kl": float(np.mean([r["bins"] for r in recent]))} if cfg.bin_weight else {})})
             if not heldout or err < best["error"]:
                 best = {"error": err, "step": done, "state": copy_state(model)}
             save_state(state_path, {"step": done, "model": model.state_dict(), "optimizer": adapter.optimizer.state_dict(),

@@ -36,6 +36,11 @@ class Adapter:
         self.content[..., :frames.content[0] // sc, :frames.content[1] // sc] = True
         self.K = torch.as_tensor(scale_intrinsics(frames.K, sc), dtype=torch.float32)
         self.train_targets = sorted(sources)  # the run sets them without its held-out frames
+        # the cost volume over the bins (bin_weight > 0) is swept at the decoder's stride 4
+        self.tiny = downsample_images(frames.images, 4) if cfg.bin_weight > 0 else None
+        self.K4 = torch.as_tensor(scale_intrinsics(frames.K, 4), dtype=torch.float32)
+        self.content4 = torch.zeros(1, 1, frames.images.shape[1] // 4, frames.images.shape[2] // 4, dtype=torch.bool)
+        self.content4[..., :frames.content[0] // 4, :frames.content[1] // 4] = True
         self.optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
         freeze_batchnorm(model)
 
@@ -58,30 +63,58 @@ class Adapter:
         depth = F.interpolate(depth, size=size, mode="bilinear", align_corners=False)
         return depth.clamp(self.bins.min_depth, self.bins.max_depth), beyond_logit
 
+    def source_lists(self, targets: list[int]) -> list[list[int]]:
+        """Each target's sources, padded to 2·per_side by repeating its own (the loss is a minimum over them)."""
+        n = max(2, 2 * self.cfg.per_side)
+        return [[self.sources[t][k % len(self.sources[t])] for k in range(n)] for t in targets]
+
     def batch(self, targets: list[int]):
-        """Network inputs (B,3,H,W); at the loss resolution the targets, two sources each (one side repeated if
-        only one exists), their poses T_src_tgt (B,4,4) and the pixels that count (content, not sky)."""
+        """Network inputs (B,3,H,W); at the loss resolution the targets, 2·per_side sources each (repeated if
+        fewer exist), their poses T_src_tgt (B,4,4) and the pixels that count (content, not sky)."""
         f = self.frames
         x = to_tensor(f.images[targets])
         tgt = to_tensor(self.small[targets])
-        srcs = [[self.sources[t][0], self.sources[t][-1]] for t in targets]
-        sources = [to_tensor(self.small[[s[k] for s in srcs]]) for k in (0, 1)]
+        srcs = self.source_lists(targets)
+        sources = [to_tensor(self.small[[s[k] for s in srcs]]) for k in range(len(srcs[0]))]
         poses = [torch.as_tensor(np.stack([np.linalg.inv(f.poses[s[k]]) @ f.poses[t] for s, t in zip(srcs, targets)]),
-                                 dtype=torch.float32) for k in (0, 1)]
+                                 dtype=torch.float32) for k in range(len(srcs[0]))]
         mask = self.content.expand(len(targets), 1, *tgt.shape[-2:])
         if self.base_beyond is not None:
             sky = F.interpolate(self.base_beyond[targets], size=tgt.shape[-2:], mode="nearest") > self.cfg.sky_threshold
             mask = mask & ~sky
         return x, tgt, sources, poses, mask
 
-    def photometric_loss(self, targets: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
+    def photometric_loss(self, targets: list[int], with_bins: bool = False
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
         x, tgt, sources, poses, mask = self.batch(targets)
         low = self.forward(x)
         depth, beyond_logit = self.depth_and_beyond(low, tgt.shape[-2:])
         K = self.K.expand(len(targets), 3, 3)
         photo, used = photometric.reprojection_loss(tgt, sources, depth, K, poses, mask=mask, trim=self.cfg.trim)
         smooth = photometric.smoothness_loss(depth, tgt)
-        return photo, smooth, beyond_logit, {"used": float(used.float().mean())}
+        info = {"used": float(used.float().mean())}
+        if with_bins:
+            info["bins"] = self.bin_loss(low, targets, poses)
+        return photo, smooth, beyond_logit, info
+
+    def bin_loss(self, low: torch.Tensor, targets: list[int], poses: list[torch.Tensor]) -> torch.Tensor:
+        """KL(q ‖ p) of the cost volume's soft targets q over the K bins (:func:`photometric.cost_targets`) to
+        the network's distribution p (softmax of the bin logits, as it is read) at stride 4, mean over the
+        pixels the cost volume holds for (not sky, not padding, not auto-masked): the whole distribution is
+        fitted to the multi-view evidence, not only its expectation."""
+        tgt = to_tensor(self.tiny[targets])
+        srcs = self.source_lists(targets)
+        sources = [to_tensor(self.tiny[[s[k] for s in srcs]]) for k in range(len(srcs[0]))]
+        depths = torch.as_tensor(self.bins.centres, dtype=torch.float32)
+        costs, ident = photometric.bin_costs(tgt, sources, depths, self.K4.expand(len(targets), 3, 3), poses)
+        q, ok = photometric.cost_targets(costs, ident, self.cfg.bin_temperature)
+        ok = ok & self.content4
+        if self.base_beyond is not None:
+            ok = ok & ~(self.base_beyond[targets] > self.cfg.sky_threshold)
+        K = self.bins.num_bins
+        logp = F.log_softmax(low[:, :K].float(), 1)
+        kl = (q * (torch.log(q.clamp_min(1e-12)) - logp)).sum(1, keepdim=True)
+        return (kl * ok).sum() / ok.sum().clamp_min(1)
 
     def beyond_loss(self, beyond_logit: torch.Tensor | None, targets: list[int]) -> torch.Tensor:
         """KL(base ‖ current) of the Bernoulli "no surface within range", mean over pixels: 0 at the base."""
@@ -112,8 +145,10 @@ class Adapter:
         targets = [train[k] for k in rng.choice(len(train), size=min(self.cfg.batch_size, len(train)), replace=False)]
         self.model.train()
         freeze_batchnorm(self.model)
-        photo, smooth, beyond_logit, info = self.photometric_loss(targets)
+        photo, smooth, beyond_logit, info = self.photometric_loss(targets, with_bins=self.cfg.bin_weight > 0)
         loss = photo + self.cfg.smoothness * smooth + self.cfg.beyond_weight * self.beyond_loss(beyond_logit, targets)
+        bins_kl = info.pop("bins", torch.zeros(()))
+        loss = loss + self.cfg.bin_weight * bins_kl
         rep = torch.zeros(())
         if self.replay is not None and self.cfg.replay > 0:
             rep = self.replay_loss(rng)
@@ -124,7 +159,7 @@ class Adapter:
         loss.backward()
         self.optimizer.step()
         return {"loss": float(loss.detach()), "photometric": float(photo.detach()), "smoothness": float(smooth.detach()),
-                "replay": float(rep.detach()), **info}
+                "replay": float(rep.detach()), "bins": float(bins_kl.detach()), **info}
 
     @torch.no_grad()
     def heldout_error(self, targets: list[int]) -> float:
