@@ -22,6 +22,7 @@ from mono_map.data.kitti import open_sequence
 from mono_map.depth.bins import DepthBins
 from mono_map.depth.multiview import MultiviewConfig, MultiviewPosterior
 from mono_map.frames import parse_frames
+from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq
 from mono_map.mapping.inputs import load_predictor, run_predictor
 
 
@@ -32,10 +33,10 @@ def metrics(d: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seq", default="06")
-    p.add_argument("--frames", default="10:200:10")
-    p.add_argument("--data-root", default=None)
-    p.add_argument("--model", default=None)
+    add_seq(p, default="06")
+    add_frames(p, default="10:200:10")
+    add_data_root(p)
+    add_model(p)
     p.add_argument("--probs-step", type=int, default=2)
     p.add_argument("--temperature", default="0.05")
     p.add_argument("--sources", default="2")
