@@ -92,11 +92,6 @@ def register(subparsers) -> None:
                    help="weight of supervised replay on --replay-seq, relative to the photometric loss at the start "
                         f"(default {d.replay:g} = off)")
     p.add_argument("--replay-seq", default=d.replay_seq, help="synthetic training sequence for replay (e.g. 06)")
-    p.add_argument("--bin-weight", type=float, default=d.bin_weight,
-                   help="weight of the cost volume over the bins as soft targets of the whole distribution "
-                        f"(default {d.bin_weight:g})")
-    p.add_argument("--bin-temperature", type=float, default=d.bin_temperature,
-                   help=f"photometric-error scale of those soft targets (default {d.bin_temperature:g})")
     p.add_argument("--decoder-only", action="store_true", help="keep the encoder's weights, adapt the decoder and head")
     p.add_argument("--replay-root", default=None, help="data root of --replay-seq (default: --data-root)")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
@@ -358,11 +353,9 @@ def run_adapt(args) -> int:
 
     check_threads(args.threads)
     cfg = AdaptConfig(steps=args.steps, lr=args.lr, batch_size=args.batch_size, min_baseline=args.min_baseline,
-                      max_baseline=args.max_baseline, max_offset=args.max_offset, per_side=args.per_side, loss_scale=args.loss_scale,
-                      trim=args.trim,
-                      replay=args.replay, replay_seq=args.replay_seq,
-                      train_encoder=not args.decoder_only, bin_weight=args.bin_weight, bin_temperature=args.bin_temperature,
-                      eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision())
+                      max_baseline=args.max_baseline, max_offset=args.max_offset, per_side=args.per_side,
+                      loss_scale=args.loss_scale, trim=args.trim, replay=args.replay, replay_seq=args.replay_seq,
+                      train_encoder=not args.decoder_only, eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision())
     cfg.validate()
     selection = parse_frames(args.frames) if args.frames is not None else None   # None: adapt's default
     torch.set_num_threads(args.threads)

@@ -52,8 +52,6 @@ class AdaptConfig:
     eval_every: int = 25             # steps between held-out evaluations (and saved states)
     trim: float = 0.0                # leave out this fraction of the highest-error pixels of a batch
     loss_scale: int = 2              # photometric loss at 1/loss_scale of the network input (1 or 2)
-    bin_weight: float = 0.0          # weight of KL(cost-volume soft targets ‖ the bin distribution), 0 = off
-    bin_temperature: float = 0.02    # photometric error scale of those soft targets
     train_encoder: bool = True       # False: the encoder stays the base model's, only the decoder and head adapt
     seed: int = 0
     precision: str = "fp32"          # "bf16": bfloat16 autocast of the network's forward pass
@@ -72,8 +70,6 @@ class AdaptConfig:
                   (self.replay_seq != "00", "--replay-seq", "00 is the held-out evaluation sequence, never trained on"),
                   (0 <= self.trim < 1, "--trim", f"must be in [0, 1), got {self.trim}"),
                   (self.loss_scale in (1, 2, 4), "loss_scale", f"must be 1, 2 or 4, got {self.loss_scale}"),
-                  (self.bin_weight >= 0, "--bin-weight", f"must be >= 0, got {self.bin_weight}"),
-                  (self.bin_temperature > 0, "--bin-temperature", f"must be > 0, got {self.bin_temperature}"),
                   (self.eval_every >= 1, "eval_every", f"must be >= 1, got {self.eval_every}"),
                   (self.precision in ("fp32", "bf16"), "--precision", f"must be fp32 or bf16, got {self.precision}")]
         for ok, option, why in checks:
@@ -285,8 +281,7 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
             recent = losses[-cfg.eval_every:]
             curve.append({"step": done, "heldout_photometric": err,
                           "train_photometric": float(np.mean([r["photometric"] for r in recent])),
-                          "used_pixels": float(np.mean([r["used"] for r in recent])),
-                          **({"train_bins_kl": float(np.mean([r["bins"] for r in recent]))} if cfg.bin_weight else {})})
+                          "used_pixels": float(np.mean([r["used"] for r in recent]))})
             if not heldout or err < best["error"]:
                 best = {"error": err, "step": done, "state": copy_state(model)}
             save_state(state_path, {"step": done, "model": model.state_dict(), "optimizer": adapter.optimizer.state_dict(),

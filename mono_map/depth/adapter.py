@@ -36,11 +36,6 @@ class Adapter:
         self.content[..., :frames.content[0] // sc, :frames.content[1] // sc] = True
         self.K = torch.as_tensor(scale_intrinsics(frames.K, sc), dtype=torch.float32)
         self.train_targets = sorted(sources)  # the run sets them without its held-out frames
-        # the cost volume over the bins (bin_weight > 0) is swept at the decoder's stride 4
-        self.tiny = downsample_images(frames.images, 4) if cfg.bin_weight > 0 else None
-        self.K4 = torch.as_tensor(scale_intrinsics(frames.K, 4), dtype=torch.float32)
-        self.content4 = torch.zeros(1, 1, frames.images.shape[1] // 4, frames.images.shape[2] // 4, dtype=torch.bool)
-        self.content4[..., :frames.content[0] // 4, :frames.content[1] // 4] = True
         self.optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
         freeze_batchnorm(model)
 
@@ -84,8 +79,7 @@ class Adapter:
             mask = mask & ~sky
         return x, tgt, sources, poses, mask
 
-    def photometric_loss(self, targets: list[int], with_bins: bool = False
-                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
+    def photometric_loss(self, targets: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
         x, tgt, sources, poses, mask = self.batch(targets)
         low = self.forward(x)
         depth, beyond_logit = self.depth_and_beyond(low, tgt.shape[-2:])
@@ -93,28 +87,7 @@ class Adapter:
         photo, used = photometric.reprojection_loss(tgt, sources, depth, K, poses, mask=mask, trim=self.cfg.trim)
         smooth = photometric.smoothness_loss(depth, tgt)
         info = {"used": float(used.float().mean())}
-        if with_bins:
-            info["bins"] = self.bin_loss(low, targets, poses)
         return photo, smooth, beyond_logit, info
-
-    def bin_loss(self, low: torch.Tensor, targets: list[int], poses: list[torch.Tensor]) -> torch.Tensor:
-        """KL(q ‖ p) of the cost volume's soft targets q over the K bins (:func:`photometric.cost_targets`) to
-        the network's distribution p (softmax of the bin logits, as it is read) at stride 4, mean over the
-        pixels the cost volume holds for (not sky, not padding, not auto-masked): the whole distribution is
-        fitted to the multi-view evidence, not only its expectation."""
-        tgt = to_tensor(self.tiny[targets])
-        srcs = self.source_lists(targets)
-        sources = [to_tensor(self.tiny[[s[k] for s in srcs]]) for k in range(len(srcs[0]))]
-        depths = torch.as_tensor(self.bins.centres, dtype=torch.float32)
-        costs, ident = photometric.bin_costs(tgt, sources, depths, self.K4.expand(len(targets), 3, 3), poses)
-        q, ok = photometric.cost_targets(costs, ident, self.cfg.bin_temperature)
-        ok = ok & self.content4
-        if self.base_beyond is not None:
-            ok = ok & ~(self.base_beyond[targets] > self.cfg.sky_threshold)
-        K = self.bins.num_bins
-        logp = F.log_softmax(low[:, :K].float(), 1)
-        kl = (q * (torch.log(q.clamp_min(1e-12)) - logp)).sum(1, keepdim=True)
-        return (kl * ok).sum() / ok.sum().clamp_min(1)
 
     def beyond_loss(self, beyond_logit: torch.Tensor | None, targets: list[int]) -> torch.Tensor:
         """KL(base ‖ current) of the Bernoulli "no surface within range", mean over pixels: 0 at the base."""
@@ -145,10 +118,8 @@ class Adapter:
         targets = [train[k] for k in rng.choice(len(train), size=min(self.cfg.batch_size, len(train)), replace=False)]
         self.model.train()
         freeze_batchnorm(self.model)
-        photo, smooth, beyond_logit, info = self.photometric_loss(targets, with_bins=self.cfg.bin_weight > 0)
+        photo, smooth, beyond_logit, info = self.photometric_loss(targets)
         loss = photo + self.cfg.smoothness * smooth + self.cfg.beyond_weight * self.beyond_loss(beyond_logit, targets)
-        bins_kl = info.pop("bins", torch.zeros(()))
-        loss = loss + self.cfg.bin_weight * bins_kl
         rep = torch.zeros(())
         if self.replay is not None and self.cfg.replay > 0:
             rep = self.replay_loss(rng)
@@ -159,7 +130,7 @@ class Adapter:
         loss.backward()
         self.optimizer.step()
         return {"loss": float(loss.detach()), "photometric": float(photo.detach()), "smoothness": float(smooth.detach()),
-                "replay": float(rep.detach()), "bins": float(bins_kl.detach()), **info}
+                "replay": float(rep.detach()), **info}
 
     @torch.no_grad()
     def heldout_error(self, targets: list[int]) -> float:

@@ -114,39 +114,3 @@ def smoothness_loss(depth: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
     iy = (image[..., :-1, :] - image[..., 1:, :]).abs().mean(1, keepdim=True)
     return (dx * torch.exp(-ix)).mean() + (dy * torch.exp(-iy)).mean()
 
-
-INVALID_COST = 1e3   # a hypothesis that lands outside every source: never the minimum
-
-
-@torch.no_grad()
-def bin_costs(target: torch.Tensor, sources: list[torch.Tensor], depths: torch.Tensor, K: torch.Tensor,
-              poses: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Plane-sweep cost volume: for every depth hypothesis ``depths`` (D,) metres, the photometric error of
-    each target pixel with every pixel at that depth, minimum over the sources.
-
-    Returns (costs (B,D,H,W), identity (B,1,H,W) the unwarped sources' error, for auto-masking);
-    hypotheses that land outside every source cost :data:`INVALID_COST`. No gradient (a target, not a loss)."""
-    B, _, H, W = target.shape
-    D = len(depths)
-    best = torch.full((B, D, H, W), INVALID_COST, dtype=target.dtype, device=target.device)
-    tgt = target.repeat_interleave(D, 0)
-    dep = depths.to(target.dtype).view(1, D, 1, 1).expand(B, D, H, W).reshape(B * D, 1, H, W)
-    for src, T in zip(sources, poses):
-        warped, valid = warp(src.repeat_interleave(D, 0), dep, K.repeat_interleave(D, 0), T.repeat_interleave(D, 0))
-        e = photometric_error(warped, tgt)
-        e = torch.where(valid, e, torch.full_like(e, INVALID_COST)).view(B, D, H, W)
-        best = torch.minimum(best, e)
-    identity = torch.cat([photometric_error(s, target) for s in sources], 1).min(1, keepdim=True).values
-    return best, identity
-
-
-def cost_targets(costs: torch.Tensor, identity: torch.Tensor, temperature: float
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Soft targets over the bins from a cost volume: q_k ∝ exp(−(c_k − min c)/temperature) (B,D,H,W), and
-    the pixels they hold for (B,1,H,W) bool: some hypothesis valid and better than the unwarped sources by
-    more than :data:`AUTOMASK_MARGIN` (monodepth2's auto-mask: a static camera or things moving with it say
-    nothing about depth)."""
-    cmin = costs.min(1, keepdim=True).values
-    q = torch.softmax(-(costs - cmin) / temperature, 1)
-    ok = (cmin < INVALID_COST / 2) & (cmin < identity - AUTOMASK_MARGIN)
-    return q, ok
