@@ -40,6 +40,18 @@ def intrinsics_from_projection(P: np.ndarray) -> np.ndarray:
     return np.array(P, dtype=np.float64)[:3, :3].copy()
 
 
+def scaled_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """3×3 intrinsics after resizing an image by (sx, sy) (new size / old size), pixel centres kept:
+    u' + ½ = (u + ½)·sx, v' + ½ = (v + ½)·sy."""
+    K2 = np.array(K, np.float64).copy()
+    K2[0, 0] *= sx
+    K2[0, 1] *= sx
+    K2[0, 2] = (K2[0, 2] + 0.5) * sx - 0.5
+    K2[1, 1] *= sy
+    K2[1, 2] = (K2[1, 2] + 0.5) * sy - 0.5
+    return K2
+
+
 def T_cam_cam0_from_projection(P: np.ndarray) -> np.ndarray:
     """Pose ``T_camX_cam0`` of a rectified camera whose projection is P = K·[I | t].
 

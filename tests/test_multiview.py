@@ -8,10 +8,10 @@ import torch
 
 from mono_map.depth.bins import DepthBins
 from mono_map.depth.inference import DepthPrediction
-from mono_map.depth.multiview import (MultiviewConfig, MultiviewPosterior, check_multiview_config, plane_warp,
-                                      scaled_intrinsics)
+from mono_map.depth.multiview import MultiviewConfig, MultiviewPosterior, check_multiview_config, plane_warp
 from mono_map.depth.photometric import warp
 from mono_map.errors import MonoMapError
+from mono_map.geometry import scaled_intrinsics
 from mono_map.mapping.fused import FusedConfig, check_fused_config
 
 H, W = 64, 160
@@ -128,7 +128,7 @@ def test_a_static_camera_or_a_scene_moving_with_it_leaves_the_prior_unchanged():
 
 
 def test_scaled_intrinsics_keep_pixel_centres():
-    Ks = scaled_intrinsics(K, (H, W), (H // 4, W // 4))
+    Ks = scaled_intrinsics(K, (W // 4) / W, (H // 4) / H)
     # the full image's pixel u = 4j + 1.5 is the centre of reduced pixel j
     x = np.array([0.3, -0.2, 1.0])
     full = K @ x

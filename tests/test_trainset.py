@@ -10,8 +10,9 @@ import pytest
 from mono_map.data.synth.randomize import (TownSpec, apply_camera, frame_jitter, randomized_appearance,
                                            randomized_recipe, training_towns, validation_town)
 from mono_map.data.synth.trainset import (NO_SURFACE, TownCache, decode_depth, encode_depth, open_trainset,
-                                          render_town, scaled_intrinsics)
+                                          render_town)
 from mono_map.depth.train_config import DataConfig
+from mono_map.geometry import scaled_intrinsics
 from mono_map.depth.train_data import TrainsetSampler, frame_target, subsample_targets
 
 SPEC = TownSpec(name="t04_test", trajectory="04", first_pose=100, pose_stride=3, frames=3, seed=12345)

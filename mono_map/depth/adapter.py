@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from mono_map.depth import photometric
+from mono_map.geometry import scaled_intrinsics
 
 
 def to_tensor(images: np.ndarray) -> torch.Tensor:
@@ -34,7 +35,7 @@ class Adapter:
         H, W = self.small.shape[1:3]
         self.content = torch.zeros(1, 1, H, W, dtype=torch.bool)
         self.content[..., :frames.content[0] // sc, :frames.content[1] // sc] = True
-        self.K = torch.as_tensor(scale_intrinsics(frames.K, sc), dtype=torch.float32)
+        self.K = torch.as_tensor(scaled_intrinsics(frames.K, 1 / sc, 1 / sc), dtype=torch.float32)
         self.train_targets = sorted(sources)  # the run sets them without its held-out frames
         self.optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
         freeze_batchnorm(model)
@@ -148,16 +149,6 @@ def downsample_images(images: np.ndarray, factor: int) -> np.ndarray:
 
     N, H, W = images.shape[:3]
     return np.stack([cv2.resize(im, (W // factor, H // factor), interpolation=cv2.INTER_AREA) for im in images])
-
-
-def scale_intrinsics(K: np.ndarray, factor: int) -> np.ndarray:
-    """Intrinsics of an image shrunk ``factor`` times (pixel centres at integer coordinates)."""
-    K = np.array(K, dtype=np.float64)
-    K[0, 0] /= factor
-    K[1, 1] /= factor
-    K[0, 2] = (K[0, 2] + 0.5) / factor - 0.5
-    K[1, 2] = (K[1, 2] + 0.5) / factor - 0.5
-    return K
 
 
 def freeze_batchnorm(model) -> None:

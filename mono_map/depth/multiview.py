@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mono_map.errors import MonoMapError
+from mono_map.geometry import scaled_intrinsics
 
 
 @dataclass(frozen=True)
@@ -68,18 +69,6 @@ def check_multiview_config(cfg: MultiviewConfig) -> MultiviewConfig:
     if int(cfg.scale) != cfg.scale or cfg.scale < 1:
         raise MonoMapError(f"multiview scale: must be a positive integer, got {cfg.scale}")
     return cfg
-
-
-def scaled_intrinsics(K: np.ndarray, size: tuple[int, int], new_size: tuple[int, int]) -> np.ndarray:
-    """3×3 intrinsics of an image of ``size`` (H, W) resampled to ``new_size`` (h, w) (pixel centres kept:
-    u' + ½ = (u + ½)·w/W)."""
-    K = np.asarray(K, dtype=np.float64).copy()
-    (H, W), (h, w) = size, new_size
-    K[0] *= w / W
-    K[1] *= h / H
-    K[0, 2] += 0.5 * w / W - 0.5
-    K[1, 2] += 0.5 * h / H - 0.5
-    return K
 
 
 def ssim_l1_against(target, C1: float = 0.01 ** 2, C2: float = 0.03 ** 2):
@@ -270,7 +259,7 @@ class MultiviewPosterior:
         tgt = self.small_image(seq, i)
         h, w = tgt.shape[1:]
         H, W = pred.depth.shape
-        Ks = scaled_intrinsics(seq.calib.K2, (H, W), (h, w))
+        Ks = scaled_intrinsics(seq.calib.K2, w / W, h / H)
         T_t = seq.T_world_cam2(i)
         rel = [np.linalg.inv(seq.T_world_cam2(j)) @ T_t for j in srcs]
         with torch.no_grad():

@@ -29,6 +29,7 @@ import numpy as np
 
 from mono_map.data.synth.randomize import TownSpec
 from mono_map.errors import MonoMapError
+from mono_map.geometry import scaled_intrinsics
 
 NO_SURFACE = 65535
 DEPTH_SCALE = 256.0
@@ -40,15 +41,6 @@ def default_root() -> Path:
     env = os.environ.get("MONO_MAP_TRAINSET")
     return Path(env).expanduser() if env else Path("~/.cache/mono-map/trainset").expanduser()
 
-
-def scaled_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """Intrinsics after resizing an image by (sx, sy), pixel centres kept (u' + 0.5 = (u + 0.5)·s)."""
-    K2 = np.array(K, np.float64).copy()
-    K2[0, 0] *= sx
-    K2[0, 2] = (K2[0, 2] + 0.5) * sx - 0.5
-    K2[1, 1] *= sy
-    K2[1, 2] = (K2[1, 2] + 0.5) * sy - 0.5
-    return K2
 
 
 def encode_depth(depth_m: np.ndarray, no_surface: np.ndarray | None = None) -> np.ndarray:
