@@ -12,7 +12,8 @@ from mono_map.errors import MonoMapError
 from mono_map.mapping.jobs import MapJob
 from mono_map.mapping.pipeline import build_map
 from mono_map.mapping.distribution import DistributionConfig
-from mono_map.mapping.fused import FusedConfig, SurfaceFusion, check_fused_config, log_spread, pixel_weights
+from mono_map.mapping.fused import (FusedConfig, SurfaceFusion, check_fused_config, log_spread, mode_shift,
+                                    pixel_weights)
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.octree import key_to_coord, morton_to_keys, pack_keys, tree_leaves
 from mono_map.mapping.points import camera_origin, pixels_to_world
@@ -165,6 +166,52 @@ def test_a_confident_frame_outweighs_an_uncertain_one():
     assert np.allclose(snapped[0], snapped[1], atol=1e-4)
 
 
+def test_mode_shift_moves_two_modes_onto_the_larger_and_leaves_a_symmetric_one_alone():
+    lc = BINS.log_centres
+    p = np.zeros((BINS.num_bins, 4), np.float32)
+    p[20, 0] = 1.0                                         # a point mass: no shift
+    p[[10, 11, 12], 1] = [0.25, 0.5, 0.25]                 # one symmetric mode inside the window: no shift
+    p[[5, 40], 2] = [0.4, 0.6]                             # two modes: from their mean onto bin 40
+    p[[30, 31, 44], 3] = [0.3, 0.4, 0.3]                   # a two-bin mode and a far third: onto the pair
+    s = mode_shift(p, BINS.edges)
+    assert abs(s[0]) < 1e-6 and abs(s[1]) < 1e-6
+    assert np.isclose(s[2], lc[40] - (0.4 * lc[5] + 0.6 * lc[40]), atol=1e-5)
+    peak = lc[31] + 0.5 * (0.3 - 0.0) / (0.3 - 2 * 0.4 + 0.0) * (lc[1] - lc[0])     # the parabola's vertex
+    assert lc[30] < peak < lc[31]
+    assert np.isclose(s[3], peak - (0.3 * lc[30] + 0.4 * lc[31] + 0.3 * lc[44]), atol=1e-5)
+
+
+class BimodalPredictor(LogNormalPredictor):
+    """A confident mode (weight 0.7) at the true depth and a second one (0.3) 60 % farther: the expected
+    depth lies between them, in empty space."""
+
+    def predict_frame(self, seq, i, image=None, with_probs=False, probs_step=1):
+        from mono_map.mapping.oracle import lognormal_bin_probs
+
+        d = self.depth_fn(i).astype(np.float32)
+        sig = np.full(d.shape, np.float32(self.sigma))
+        probs = sum(w * lognormal_bin_probs(d * f, sig, BINS)[0] for w, f in ((0.7, 1.0), (0.3, 1.6)))
+        probs = (probs / probs.sum(axis=0, keepdims=True)).astype(np.float32)
+        depth = np.exp((probs * BINS.log_centres[:, None, None]).sum(axis=0)).astype(np.float32)
+        s = probs_step
+        return DepthPrediction(depth=depth, entropy=np.zeros(d.shape, np.float32),
+                               probs=np.ascontiguousarray(probs[:, ::s, ::s]) if with_probs else None,
+                               p_beyond=np.zeros(d.shape, np.float32), probs_step=s)
+
+
+def test_the_mode_puts_a_two_mode_surface_on_the_true_one_where_the_mean_does_not():
+    seq = Seq(4)
+    gt = occupied_keys_of(build_map(seq, MapJob.spec("depth-gt", range(4)), show_progress=False).tree)
+    near = {}
+    for mode in (0, 1):
+        fused = fused_build(seq, BimodalPredictor(seq.depth, 0.01), range(4),
+                            FusedConfig(min_weight=1.0, mode=mode, multiview=0, max_spread=1.0, spread_ref=1.0))
+        occ = occupied_keys_of(fused.tree)
+        assert len(occ) > 100
+        near[mode] = within_one_cell(occ, gt).mean()
+    assert near[1] > 0.9 and near[0] < 0.5
+
+
 def test_surface_cells_are_never_freed_by_rays_that_end_on_them():
     """One frame of exact depth: every cell a snapped ray ends in is occupied (the free half's own rays, which
     also end there, never free it) and lies on the true surface (the depth-gt map's end cells)."""
@@ -235,7 +282,8 @@ def test_log_spread_and_weights():
     ("trunc_max", float("nan"), "--fused-trunc-max"), ("trunc_behind", 0.5, "--fused-trunc-behind"),
     ("max_depth", float("inf"), "--fused-max-depth"), ("lag", -1, "--fused-lag"),
     ("snap_window", 0.0, "--fused-snap-window"),
-    ("trunc_sigma", -2.0, "--fused-trunc-sigma"), ("max_spread", 0.0, "--fused-max-spread")])
+    ("trunc_sigma", -2.0, "--fused-trunc-sigma"), ("max_spread", 0.0, "--fused-max-spread"),
+    ("mode", 2, "--fused-mode")])
 def test_bad_settings_are_one_line_naming_the_option(field, value, option):
     import dataclasses
 

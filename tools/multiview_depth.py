@@ -44,12 +44,15 @@ def main(argv=None) -> int:
     p.add_argument("--prior-power", default=f"{d.prior_power:g}")
     p.add_argument("--min-baseline", default=f"{d.min_baseline:g}")
     p.add_argument("--window", default=str(d.window))
+    p.add_argument("--scale", default=str(d.scale), help="the cost's grid: 1/scale of the image (comma list)")
+    p.add_argument("--max-baseline", default=f"{d.max_baseline:g}")
     p.add_argument("--allow-00", action="store_true")
     args = p.parse_args(argv)
     grid = [MultiviewConfig(sources=int(s), temperature=float(t), prior_power=float(a), min_baseline=float(b),
-                            window=int(wn))
+                            window=int(wn), scale=int(sc), max_baseline=float(mb))
             for s in args.sources.split(",") for t in args.temperature.split(",") for a in args.prior_power.split(",")
-            for b in args.min_baseline.split(",") for wn in args.window.split(",")]
+            for b in args.min_baseline.split(",") for wn in args.window.split(",") for sc in args.scale.split(",")
+            for mb in args.max_baseline.split(",")]
     if args.seq == "00" and (not args.allow_00 or len(grid) > 1):
         raise SystemExit("choose settings on a training town, never on 00 (--allow-00 measures one setting)")
     seq = open_sequence(args.data_root, args.seq)
@@ -86,7 +89,7 @@ def main(argv=None) -> int:
         d, gg = (np.concatenate(x) for x in zip(*acc[k]))
         a, b = metrics(d, gg)
         print(f"| posterior, {cfg.sources} sources ≥ {cfg.min_baseline:g} m, τ {cfg.temperature:g}, a {cfg.prior_power:g}, "
-              f"window {cfg.window} | {a:.3f} | "
+              f"window {cfg.window}, scale {cfg.scale}, max baseline {cfg.max_baseline:g} m | {a:.3f} | "
               f"{b:.3f} | {100 * np.mean(informative[k]):.0f} % | {secs[k] / len(frames):.2f} |")
     return 0
 

@@ -133,6 +133,7 @@ FUSED_OPTIONS = (
                   "(plane-sweep posterior, depth/multiview.py)"),
     ("multiview_temperature", "temperature of the multi-view photometric likelihood"),
     ("subpixel", "1: voxels read the full-resolution depth bilinearly; 0: the nearest ray-grid pixel"),
+    ("mode", "1: each pixel's surface moves from its expected depth to its distribution's mode; 0: it stays"),
 )
 
 

@@ -230,7 +230,8 @@ def table_markdown(rows: list[dict], seq: str, desc: str, cfg, model, reference:
     if fcfg is not None:
         dist += (f" Fused map: the distribution map's free space + surface hits snapped to the fused TSDF "
                  f"(spread ref {fcfg.spread_ref:g}, min weight {fcfg.min_weight:g}, lag {fcfg.lag}, snap window "
-                 f"{fcfg.snap_window:g} m).")
+                 f"{fcfg.snap_window:g} m; multi-view posterior from {fcfg.multiview} neighbours; surface at each "
+                 f"pixel's {'mode' if fcfg.mode else 'expected depth'}).")
     lines = [f"Sequence {seq}, {desc}, {cfg.resolution:g} m cells, model {model or 'shipped binary'}; "
              f"reference = {'LiDAR-FOV' if reference == 'lidar-fov' else 'whole LiDAR (360°)'} map. Accuracy: share of the reference's known cells (volume-weighted, "
              "finest cells) whose free/occupied state the map reproduces, unknown = wrong. Memory: OctoMap "

@@ -53,7 +53,10 @@ class FusedConfig:
     (0 = off, 1 or 2) whose images sharpen each frame's distribution before both halves use it (the plane-sweep
     posterior of :mod:`mono_map.depth.multiview`) and multiview_temperature its likelihood's τ; subpixel: 1 = each
     voxel reads the depth bilinearly at its projection into the full-resolution expected depth (nearest pixel
-    across a depth edge), 0 = the nearest pixel of the ray grid."""
+    across a depth edge), 0 = the nearest pixel of the ray grid; mode: 1 = each pixel's surface depth (fused and
+    snapped) is moved from its expected depth by its distribution's step from mean to mode (:func:`mode_shift`;
+    the posterior's where multiview is on), 0 = the expected depth (the free half always uses the whole
+    distribution)."""
 
     # chosen on training town 06 frames 0-199 (docs/fused.md), never on 00
     spread_ref: float = 0.15
@@ -70,6 +73,7 @@ class FusedConfig:
     multiview: int = 2
     multiview_temperature: float = 0.02
     subpixel: int = 0
+    mode: int = 1
 
     def multiview_config(self):
         """The multi-view posterior's settings (:mod:`mono_map.depth.multiview`), None when it is off."""
@@ -104,6 +108,8 @@ def check_fused_config(cfg: FusedConfig) -> FusedConfig:
     positive("fused-multiview-temperature", cfg.multiview_temperature)
     if cfg.subpixel not in (0, 1):
         raise MonoMapError(f"--fused-subpixel: must be 0 or 1, got {cfg.subpixel}")
+    if cfg.mode not in (0, 1):
+        raise MonoMapError(f"--fused-mode: must be 0 (the expected depth) or 1 (the mode), got {cfg.mode}")
     return cfg
 
 
@@ -125,6 +131,27 @@ def pixel_weights(spread: np.ndarray, cfg: FusedConfig) -> np.ndarray:
     """Fusion weight of pixels with log-depth spread ``spread``: 1 / (1 + (spread / spread_ref)²) (float32)."""
     s = np.asarray(spread, dtype=np.float32) / np.float32(cfg.spread_ref)
     return (1.0 / (1.0 + s * s)).astype(np.float32)
+
+
+def mode_shift(probs: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Per pixel (float32; shape of ``probs`` (K, ...) without its first axis) the log-depth from the mean of
+    bin probabilities ``probs`` over bins with ``edges`` (K+1,) metres to their mode: the most probable bin's
+    log centre moved by a parabola through it and its two neighbours (at most half a bin). 0 for a point mass
+    or a mode symmetric about its bin; for two modes, the step from between them onto the larger one. Rows
+    summing to 0: 0."""
+    p = np.asarray(probs, dtype=np.float32)
+    le = np.log(np.asarray(edges, dtype=np.float64))
+    lc = (0.5 * (le[:-1] + le[1:])).astype(np.float32)
+    K = p.shape[0]
+    k = p.argmax(axis=0)
+    kk = np.clip(k, 1, K - 2)
+    pm, p0, pp = (np.take_along_axis(p, (kk + o)[None], 0)[0] for o in (-1, 0, 1))
+    den = pm - 2 * p0 + pp
+    off = np.where((k == kk) & (den < 0), 0.5 * (pm - pp) / np.where(den < 0, den, -1.0), 0.0)
+    mode = lc[k] + np.clip(off, -0.5, 0.5) * (lc[1] - lc[0])
+    mass = p.sum(axis=0)
+    mean = (p * lc.reshape((-1,) + (1,) * (p.ndim - 1))).sum(axis=0) / np.where(mass > 0, mass, 1.0)
+    return np.where(mass > 0, mode - mean, 0.0).astype(np.float32)
 
 
 class SurfaceFusion:
@@ -319,6 +346,8 @@ def fuse_prediction(fusion: SurfaceFusion, pred, valid: np.ndarray, K: np.ndarra
     if pb is not None:
         ok &= ~(np.asarray(pb)[::s, ::s] > 0.5)
     spread = log_spread(probs, edges)
+    if cfg.mode:                                   # onto the dominant mode instead of the expectation
+        depth = np.where(depth > 0, depth * np.exp(mode_shift(probs, edges)), np.float32(0.0)).astype(np.float32)
     ok &= (depth > 0) & (depth <= cfg.max_depth) & (spread <= cfg.max_spread)
     d = np.where(ok, depth, np.float32(0.0)).astype(np.float32)
     trunc = np.clip(cfg.trunc_sigma * d * spread, cfg.trunc_min * fusion.res, cfg.trunc_max).astype(np.float32)
