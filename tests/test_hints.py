@@ -52,12 +52,12 @@ def test_best_plane_refines_between_planes():
     assert torch.all(flat == float(np.float32(lc[0])))      # a flat curve: the first plane, no refinement
 
 
-def wall_hints(pose_scale=1.0):
+def wall_hints(pose_scale=1.0, min_contrast=0.0):
     images, poses = wall_images()
     poses = poses.copy()
     poses[:, :3, 3] *= pose_scale
     sources = choose_sources(poses[:, :3, 3], 0.3, 4.0 * pose_scale, 10)
-    return compute_hints(images, K, poses, sources, BINS), sources
+    return compute_hints(images, K, poses, sources, BINS, min_contrast=min_contrast), sources
 
 
 def test_hints_on_a_textured_wall_lie_at_its_depth_and_are_metric():
@@ -74,6 +74,12 @@ def test_hints_on_a_textured_wall_lie_at_its_depth_and_are_metric():
     d2 = double.depth[inner]
     both = (d > 0) & (d2 > 0)
     assert abs(float((d2[both] / d[both]).median()) - 2.0) < 0.1
+    # a contrast floor keeps the distinct minima (the textured wall) and drops all above the planes' spread
+    kept, _ = wall_hints(min_contrast=0.02)
+    assert torch.equal(kept.depth[kept.depth > 0], hints.depth[kept.depth > 0])
+    assert 0.5 < float((kept.depth[inner] > 0).float().mean()) <= float((d > 0).float().mean())
+    none, _ = wall_hints(min_contrast=10.0)
+    assert not (none.depth > 0).any() and torch.isinf(none.error).all()
 
 
 def test_hints_on_tiny_are_near_the_truth_at_textured_pixels(tiny_root):
@@ -129,4 +135,4 @@ def test_the_mask_keeps_a_pixel_only_where_the_hint_explains_the_image_better(ti
     assert float(info["hint_loss"].detach()) > 0
     ad.hints.error[:] = float("inf")                    # the hint never wins: nothing is supervised
     _, _, _, info = ad.photometric_loss([1, 2])
-    assert info["hinted"] == 0 and float(info["hint_loss"]) == 0
+    assert info["hinted"] == 0 and float(info["hint_loss"].detach()) == 0

@@ -99,6 +99,9 @@ def register(subparsers) -> None:
     p.add_argument("--hint-loss", choices=HINT_LOSSES, default=d.hint_loss,
                    help="the hint term: log = |log d - log hint| on the expected depth, head = the head's training "
                         f"loss towards the hint (default {d.hint_loss})")
+    p.add_argument("--hint-contrast", type=float, default=d.hint_contrast,
+                   help="a hint only where the sweep's mean cost exceeds its best plane's by more than this "
+                        f"(SSIM+L1 units; default {d.hint_contrast:g} = every informative pixel)")
     p.add_argument("--replay-root", default=None, help="data root of --replay-seq (default: --data-root)")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"steps between held-out photometric checks (the stopping rule; default {d.eval_every})")
@@ -362,7 +365,7 @@ def run_adapt(args) -> int:
                       max_baseline=args.max_baseline, max_offset=args.max_offset, per_side=args.per_side,
                       loss_scale=args.loss_scale, trim=args.trim, replay=args.replay, replay_seq=args.replay_seq,
                       train_encoder=not args.decoder_only, eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision(),
-                      hints=args.hints, hint_loss=args.hint_loss)
+                      hints=args.hints, hint_loss=args.hint_loss, hint_contrast=args.hint_contrast)
     cfg.validate()
     selection = parse_frames(args.frames) if args.frames is not None else None   # None: adapt's default
     torch.set_num_threads(args.threads)

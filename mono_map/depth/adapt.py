@@ -6,8 +6,9 @@ the sources, auto-masking, edge-aware smoothness; :mod:`mono_map.depth.photometr
 scale. Sources are chosen by baseline, not frame offset (a stopped car gives no depth signal). Pixels the
 base model calls sky are left out and its probability of "no surface within range" is held to the base
 model's; BatchNorm statistics stay frozen; optionally supervised batches of a synthetic training sequence
-are mixed in (replay, normalised to the photometric term's size). Frames held out from the targets score
-the weights every ``eval_every`` steps (their photometric error): the best are written.
+are mixed in (replay, normalised to the photometric term's size), or Depth Hints (:mod:`mono_map.depth.hints`:
+the plane sweep's best depth supervises the pixels where it explains the image better). Frames held out from
+the targets score the weights every ``eval_every`` steps (their photometric error): the best are written.
 
 The result is an ordinary checkpoint named ``<base>-adapted-<seq>-<digest>.pt``; the digest covers the base
 checkpoint's sha256, the sequence (data root, name, frames) and every setting. Runs resume from
@@ -61,6 +62,7 @@ class AdaptConfig:
     precision: str = "fp32"          # "bf16": bfloat16 autocast of the network's forward pass
     hints: float = 0.0               # weight of Depth Hints (the plane sweep's best depth where it beats the prediction); 0 = off
     hint_loss: str = "log"           # "log": |log d − log hint| on the expected depth; "head": the head's training loss
+    hint_contrast: float = 0.0       # a hint only where the sweep's mean cost exceeds its best by more than this
 
     def validate(self) -> None:
         checks = [(self.steps >= 1, "--steps", f"must be >= 1, got {self.steps}"),
@@ -80,6 +82,8 @@ class AdaptConfig:
                   (self.precision in ("fp32", "bf16"), "--precision", f"must be fp32 or bf16, got {self.precision}"),
                   (isinstance(self.hints, (int, float)) and np.isfinite(self.hints) and self.hints >= 0, "--hints",
                    f"must be a number >= 0 (0 = off), got {self.hints}"),
+                  (np.isfinite(self.hint_contrast) and self.hint_contrast >= 0, "--hint-contrast",
+                   f"must be a number >= 0, got {self.hint_contrast}"),
                   (self.hint_loss in HINT_LOSSES, "--hint-loss", f"must be one of {', '.join(HINT_LOSSES)}, got {self.hint_loss}")]
         for ok, option, why in checks:
             if not ok:
@@ -90,8 +94,8 @@ class AdaptConfig:
         d = asdict(self)
         d.pop("steps")
         if not self.hints:   # off: the key of a run from before hints existed (its checkpoint name stays valid)
-            d.pop("hints")
-            d.pop("hint_loss")
+            for k in ("hints", "hint_loss", "hint_contrast"):
+                d.pop(k)
         return d
 
 
@@ -234,7 +238,7 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
         from mono_map.depth.hints import compute_hints
 
         adapter.hints = compute_hints(adapter.small, adapter.K.numpy(), data.poses, sources, model.cfg.bins,
-                                      adapter.content[0, 0])
+                                      adapter.content[0, 0], min_contrast=cfg.hint_contrast)
 
     state_path = Path(state_dir or default_state_dir()) / run_id / "state.pt"
     start, curve, best = 0, [], {"error": float("inf"), "step": 0, "state": None}

@@ -34,13 +34,17 @@ class DepthHints:
 
 
 def sweep_hint(target: torch.Tensor, sources: list[torch.Tensor], K: np.ndarray, T_src_tgt: list[np.ndarray],
-               depths: np.ndarray, log_depths: np.ndarray, window: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+               depths: np.ndarray, log_depths: np.ndarray, window: int = 3, min_contrast: float = 0.0
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """(hint depth (h,w) metres, informative (h,w) bool) of ``target`` (3,h,w) in [0,1] against ``sources`` (each
     (3,h,w)) with poses ``T_src_tgt`` (4×4 target camera → source camera, metres), over planes at ``depths`` (D,)
-    metres (``log_depths`` their logs, evenly spaced)."""
+    metres (``log_depths`` their logs, evenly spaced). With ``min_contrast`` > 0 a pixel is informative only
+    where its planes' mean cost exceeds the best by more than that (a distinct minimum: texture and parallax)."""
     grey = [x.mean(0, keepdim=True) for x in [target, *sources]]
     cost, ident = sweep_cost(grey[0], grey[1:], K, T_src_tgt, depths)
     loglik, informative = likelihood(cost, ident, 1.0, window)
+    if min_contrast > 0:
+        informative = informative & (-loglik.mean(0) > min_contrast)
     return torch.exp(best_plane(loglik, log_depths)), informative
 
 
@@ -51,7 +55,8 @@ def to_tensor(images: np.ndarray) -> torch.Tensor:
 
 @torch.no_grad()
 def compute_hints(images: np.ndarray, K: np.ndarray, poses: np.ndarray, sources: dict[int, list[int]], bins,
-                  content: torch.Tensor | None = None, window: int = 3, progress_desc: str = "adapt: hints"
+                  content: torch.Tensor | None = None, window: int = 3, min_contrast: float = 0.0,
+                  progress_desc: str = "adapt: hints"
                   ) -> DepthHints:
     """The hints of every target in ``sources`` (frame → its source frames, indices into ``images``) at the
     images' resolution; frames that are not targets, and pixels outside ``content`` ((h,w) bool), get none."""
@@ -66,7 +71,8 @@ def compute_hints(images: np.ndarray, K: np.ndarray, poses: np.ndarray, sources:
         tgt = to_tensor(images[[t]])
         src = [to_tensor(images[[s]]) for s in srcs]
         rel = [np.linalg.inv(poses[s]) @ poses[t] for s in srcs]
-        d, informative = sweep_hint(tgt[0], [x[0] for x in src], K, rel, bins.centres, bins.log_centres, window)
+        d, informative = sweep_hint(tgt[0], [x[0] for x in src], K, rel, bins.centres, bins.log_centres, window,
+                                    min_contrast)
         if content is not None:
             informative = informative & content
         err, seen = min_reprojection_error(tgt, src, d[None, None], Kt,
