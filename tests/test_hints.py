@@ -136,3 +136,23 @@ def test_the_mask_keeps_a_pixel_only_where_the_hint_explains_the_image_better(ti
     ad.hints.error[:] = float("inf")                    # the hint never wins: nothing is supervised
     _, _, _, info = ad.photometric_loss([1, 2])
     assert info["hinted"] == 0 and float(info["hint_loss"].detach()) == 0
+
+
+def test_the_hint_quality_tool_measures_hints_against_lidar(tiny_root, tmp_path, capsys):
+    import json
+
+    from tool_loader import load_tool
+
+    tool = load_tool("hint_quality")
+    ckpt = write_tiny_checkpoint(tmp_path / "t.pt", beyond=True)
+    base = ["--seq", "tiny", "--data-root", str(tiny_root), "--model", str(ckpt), "--out", str(tmp_path / "o")]
+    assert tool.main(base + ["--every", "2", "--contrast", "0", "--contrast", "1"]) == 0
+    rows = json.loads((tmp_path / "o" / "hint_quality_tiny.json").read_text())["rows"]
+    assert [r["contrast"] for r in rows] == [0, 1] and rows[0]["frames"] == 3
+    assert 0.3 < rows[0]["hinted_share"] <= 1 and 0 <= rows[0]["kept_share"] <= rows[0]["hinted_share"]
+    assert rows[0]["hint_median_are"] < 0.5 and 0 <= rows[0]["kept_hint_closer"] <= 1
+    assert rows[1]["hinted_share"] < rows[0]["hinted_share"]          # a floor leaves fewer hints
+    capsys.readouterr()
+    assert tool.main(base + ["--every", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--every" in err[0]
