@@ -101,7 +101,7 @@ def register(subparsers) -> None:
                         f"loss towards the hint (default {d.hint_loss})")
     p.add_argument("--hint-contrast", type=float, default=d.hint_contrast,
                    help="a hint only where the sweep's mean cost exceeds its best plane's by more than this "
-                        f"(SSIM+L1 units; default {d.hint_contrast:g} = every informative pixel)")
+                        f"(SSIM+L1 units; default {d.hint_contrast:g}; 0 = every pixel the sweep is informative at)")
     p.add_argument("--replay-root", default=None, help="data root of --replay-seq (default: --data-root)")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"steps between held-out photometric checks (the stopping rule; default {d.eval_every})")

@@ -6,9 +6,11 @@ every source warped through fronto-parallel planes at the K bin centres, SSIM+L1
 sources, averaged over ``window``×``window`` pixels) with the sequence's known metric poses, so it is metric:
 the plane of lowest cost, refined between planes by a parabola (:func:`~mono_map.depth.multiview.best_plane`).
 Pixels where the sweep says nothing (fewer than half the planes seen, or the unwarped sources already match:
-a static camera, things moving with it, sky) get no hint. The hint's own photometric error (the adaptation's
-SSIM+L1 in colour, minimum over the same sources: :func:`~mono_map.depth.photometric.min_reprojection_error`)
-is stored with it; at every step a pixel is supervised only where that error is below the prediction's.
+a static camera, things moving with it, sky) get no hint, and with a contrast floor neither do pixels whose
+cost curve has no distinct minimum (the planes' mean cost within the floor of the best). The hint's own
+photometric error (the adaptation's SSIM+L1 in colour, minimum over the same sources:
+:func:`~mono_map.depth.photometric.min_reprojection_error`) is stored with it; at every step a pixel is
+supervised only where that error is below the prediction's.
 Conventions: images (N,h,w,3) uint8 at the loss resolution; K (3,3) of those images; poses ``T_world_cam``
 (N,4,4) metres.
 """
