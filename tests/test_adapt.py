@@ -225,13 +225,13 @@ def test_adapt_with_hints_is_deterministic_and_named_by_them(tiny_root, tiny_ckp
     curve = a.metadata["adapted"]["curve"]
     assert a.metadata["adapted"]["settings"]["hints"] == 1.0 and 0 < curve[-1]["hinted_pixels"] <= 1
     # the hints change the run, and the name; another hint loss too
-    off = run(tiny_root, tiny_ckpt, tmp_path, 2, "sc", "oc", hints=0.0)
+    off = run(tiny_root, tiny_ckpt, tmp_path, 2, "sc", "oc")
     head = run(tiny_root, tiny_ckpt, tmp_path, 2, "sd", "od", hints=1.0, hint_loss="head")
     assert len({a.checkpoint.name, off.checkpoint.name, head.checkpoint.name}) == 3
     _, w_off = last_weights(tmp_path / "sc")
     _, w_a = last_weights(tmp_path / "sa")
     assert not all(torch.equal(w_off[k], w_a[k]) for k in w_a)
     # hints off: the run's key is the one from before hints existed (old checkpoints keep their names)
-    assert "hints" not in AdaptConfig(hints=0).run_settings() and AdaptConfig(hints=0.5).run_settings()["hints"] == 0.5
+    assert "hints" not in AdaptConfig().run_settings() and AdaptConfig(hints=0.5).run_settings()["hints"] == 0.5
     with pytest.raises(MonoMapError, match="--hint-loss"):
         AdaptConfig(hints=1.0, hint_loss="l2").validate()
