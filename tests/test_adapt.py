@@ -10,9 +10,10 @@ import torch
 
 from mono_map.cli import main as cli_main
 from mono_map.depth import photometric as ph
-from mono_map.depth.adapt import AdaptConfig, adapt, choose_sources, held_out
+from mono_map.depth.adapt import AdaptConfig, adapt, held_out
 from mono_map.depth.inference import load_checkpoint
 from mono_map.errors import MonoMapError
+from mono_map.depth.sources import choose_sources
 from mono_map.frames import parse_frames
 from tiny_net import write_tiny_checkpoint
 
@@ -163,7 +164,9 @@ def test_bad_inputs_one_line(tiny_root, tiny_ckpt, tmp_path, capsys):
              (["--model", str(tiny_ckpt), "--steps", "0"], "--steps"),
              (["--model", str(tiny_ckpt), "--replay", "0.5"], "--replay-seq"),
              (["--model", str(tiny_ckpt), "--max-baseline", "0.1"], "--max-baseline"),
-             (["--model", str(tiny_ckpt), "--data-root", str(no_poses)], "no poses")]
+             (["--model", str(tiny_ckpt), "--data-root", str(no_poses)], "no poses"),
+             (["--model", str(tiny_ckpt), "--hints", "-1"], "--hints"),
+             (["--model", str(tiny_ckpt), "--hints", "nan"], "--hints")]
     for extra, words in cases:
         capsys.readouterr()
         assert cli_main(base + extra) == 2, extra
@@ -210,3 +213,25 @@ def test_a_corrupt_saved_state_starts_the_run_again(tiny_root, tiny_ckpt, tmp_pa
                 log=messages.append)
     assert any("unreadable saved state" in m for m in messages)
     assert last_weights(tmp_path / "s")[0] == 2 and res.checkpoint.is_file()
+
+
+def test_adapt_with_hints_is_deterministic_and_named_by_them(tiny_root, tiny_ckpt, tmp_path):
+    a = run(tiny_root, tiny_ckpt, tmp_path, 2, "sa", "oa", hints=1.0)
+    b = run(tiny_root, tiny_ckpt, tmp_path, 2, "sb", "ob", hints=1.0)
+    ma, _ = load_checkpoint(a.checkpoint)
+    mb, _ = load_checkpoint(b.checkpoint)
+    assert a.checkpoint.name == b.checkpoint.name
+    assert all(torch.equal(x, y) for x, y in zip(ma.state_dict().values(), mb.state_dict().values()))
+    curve = a.metadata["adapted"]["curve"]
+    assert a.metadata["adapted"]["settings"]["hints"] == 1.0 and 0 < curve[-1]["hinted_pixels"] <= 1
+    # the hints change the run, and the name; another hint loss too
+    off = run(tiny_root, tiny_ckpt, tmp_path, 2, "sc", "oc")
+    head = run(tiny_root, tiny_ckpt, tmp_path, 2, "sd", "od", hints=1.0, hint_loss="head")
+    assert len({a.checkpoint.name, off.checkpoint.name, head.checkpoint.name}) == 3
+    _, w_off = last_weights(tmp_path / "sc")
+    _, w_a = last_weights(tmp_path / "sa")
+    assert not all(torch.equal(w_off[k], w_a[k]) for k in w_a)
+    # hints off: the run's key is the one from before hints existed (old checkpoints keep their names)
+    assert "hints" not in AdaptConfig().run_settings() and AdaptConfig(hints=0.5).run_settings()["hints"] == 0.5
+    with pytest.raises(MonoMapError, match="--hint-loss"):
+        AdaptConfig(hints=1.0, hint_loss="l2").validate()

@@ -60,7 +60,7 @@ def register(subparsers) -> None:
     p.add_argument("--fast", action="store_true", help="distribution statistics at the decoder's stride 4, then up-sampled")
     p.set_defaults(func=run_eval_depth)
 
-    from mono_map.depth.adapt import AdaptConfig
+    from mono_map.depth.adapt import HINT_LOSSES, AdaptConfig
 
     d = AdaptConfig()
     p = subparsers.add_parser(
@@ -93,6 +93,15 @@ def register(subparsers) -> None:
                         f"(default {d.replay:g} = off)")
     p.add_argument("--replay-seq", default=d.replay_seq, help="synthetic training sequence for replay (e.g. 06)")
     p.add_argument("--decoder-only", action="store_true", help="keep the encoder's weights, adapt the decoder and head")
+    p.add_argument("--hints", type=float, default=d.hints,
+                   help="weight of Depth Hints: the plane sweep's best depth (known poses, metric) supervises the pixels "
+                        f"where its photometric error is lower than the prediction's (default {d.hints:g}; 0 = off)")
+    p.add_argument("--hint-loss", choices=HINT_LOSSES, default=d.hint_loss,
+                   help="the hint term: log = |log d - log hint| on the expected depth, head = the head's training "
+                        f"loss towards the hint (default {d.hint_loss})")
+    p.add_argument("--hint-contrast", type=float, default=d.hint_contrast,
+                   help="a hint only where the sweep's mean cost exceeds its best plane's by more than this "
+                        f"(SSIM+L1 units; default {d.hint_contrast:g}; 0 = every pixel the sweep is informative at)")
     p.add_argument("--replay-root", default=None, help="data root of --replay-seq (default: --data-root)")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"steps between held-out photometric checks (the stopping rule; default {d.eval_every})")
@@ -355,7 +364,8 @@ def run_adapt(args) -> int:
     cfg = AdaptConfig(steps=args.steps, lr=args.lr, batch_size=args.batch_size, min_baseline=args.min_baseline,
                       max_baseline=args.max_baseline, max_offset=args.max_offset, per_side=args.per_side,
                       loss_scale=args.loss_scale, trim=args.trim, replay=args.replay, replay_seq=args.replay_seq,
-                      train_encoder=not args.decoder_only, eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision())
+                      train_encoder=not args.decoder_only, eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision(),
+                      hints=args.hints, hint_loss=args.hint_loss, hint_contrast=args.hint_contrast)
     cfg.validate()
     selection = parse_frames(args.frames) if args.frames is not None else None   # None: adapt's default
     torch.set_num_threads(args.threads)

@@ -37,6 +37,7 @@ class Adapter:
         self.content[..., :frames.content[0] // sc, :frames.content[1] // sc] = True
         self.K = torch.as_tensor(scaled_intrinsics(frames.K, 1 / sc, 1 / sc), dtype=torch.float32)
         self.train_targets = sorted(sources)  # the run sets them without its held-out frames
+        self.hints = None                     # DepthHints at the loss resolution (set by the run when cfg.hints > 0)
         self.optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
         freeze_batchnorm(model)
 
@@ -81,14 +82,39 @@ class Adapter:
         return x, tgt, sources, poses, mask
 
     def photometric_loss(self, targets: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
+        """(photometric loss, smoothness, beyond logit or None, info) of ``targets``; with hints on, the hint
+        term is in ``info["hint_loss"]`` (a tensor) and the share of hinted pixels in ``info["hinted"]``."""
         x, tgt, sources, poses, mask = self.batch(targets)
         low = self.forward(x)
         depth, beyond_logit = self.depth_and_beyond(low, tgt.shape[-2:])
         K = self.K.expand(len(targets), 3, 3)
-        photo, used = photometric.reprojection_loss(tgt, sources, depth, K, poses, mask=mask, trim=self.cfg.trim)
+        reproj, seen = photometric.min_reprojection_error(tgt, sources, depth, K, poses)
+        photo, used = photometric.reduce_reprojection(reproj, seen, tgt, sources, mask=mask, trim=self.cfg.trim)
         smooth = photometric.smoothness_loss(depth, tgt)
         info = {"used": float(used.float().mean())}
+        if self.hints is not None:
+            info["hint_loss"], info["hinted"] = self.hint_loss(low, depth, reproj.detach(), mask, targets)
         return photo, smooth, beyond_logit, info
+
+    def hint_loss(self, low: torch.Tensor, depth: torch.Tensor, pred_error: torch.Tensor, mask: torch.Tensor,
+                  targets: list[int]) -> tuple[torch.Tensor, float]:
+        """Depth Hints' supervised term, summed over the pixels where the hint's photometric error beats the
+        prediction's and divided by the counted (content, not sky) pixels; and the share of those hinted."""
+        from mono_map.depth.hints import hint_mask
+
+        hd, he = self.hints.depth[targets], self.hints.error[targets]
+        use = hint_mask(hd, he, pred_error) & mask
+        n_use, n_all = use.sum(), mask.sum().clamp_min(1)
+        if self.cfg.hint_loss == "log":
+            r = (depth.clamp_min(1e-3).log() - hd.clamp_min(1e-3).log()).abs()
+            loss = (r * use).sum() / n_all
+        else:   # the head's own training loss towards the hint (the bins' soft target), at the hinted pixels
+            from mono_map.depth.losses import head_loss
+            from mono_map.depth.train import outputs_at_targets
+
+            out, dep = outputs_at_targets(low, torch.where(use, hd, torch.zeros_like(hd))[:, 0])
+            loss = head_loss(self.head, out, dep, self.bins, beyond=self.beyond) * (n_use / n_all)
+        return loss, float(n_use) / float(n_all)
 
     def beyond_loss(self, beyond_logit: torch.Tensor | None, targets: list[int]) -> torch.Tensor:
         """KL(base ‖ current) of the Bernoulli "no surface within range", mean over pixels: 0 at the base."""
@@ -121,6 +147,10 @@ class Adapter:
         freeze_batchnorm(self.model)
         photo, smooth, beyond_logit, info = self.photometric_loss(targets)
         loss = photo + self.cfg.smoothness * smooth + self.cfg.beyond_weight * self.beyond_loss(beyond_logit, targets)
+        hint = info.pop("hint_loss", None)
+        if hint is not None:
+            loss = loss + self.cfg.hints * hint
+            info["hint"] = float(hint.detach())
         rep = torch.zeros(())
         if self.replay is not None and self.cfg.replay > 0:
             rep = self.replay_loss(rng)

@@ -3,7 +3,7 @@ depth bins from neighbouring frames of the sequence, combined with the network's
 
 A frame's per-pixel bin probabilities p_k (the prior) share their errors with the next frame's (the model
 places a surface wrong in every view alike); the images and the sequence's metric poses do not. For each
-bin centre d_k, every neighbour (chosen by baseline, :func:`mono_map.depth.adapt.choose_sources`) is warped
+bin centre d_k, every neighbour (chosen by baseline, :func:`mono_map.depth.sources.choose_sources`) is warped
 into the frame through the fronto-parallel plane at depth d_k (:func:`mono_map.depth.photometric.warp`) and
 compared (monodepth2's SSIM + L1, :func:`mono_map.depth.photometric.photometric_error`); per pixel and bin the
 cost c_k is the minimum over the neighbours (a surface occluded in one is seen in the other). The posterior is
@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mono_map.errors import MonoMapError
+from mono_map.depth.sources import choose_sources
 from mono_map.geometry import scaled_intrinsics
 
 
@@ -168,6 +169,25 @@ def likelihood(cost, ident, temperature: float, window: int = 1):
     return (best.unsqueeze(0) - c) / float(temperature), informative
 
 
+def best_plane(loglik, log_centres: np.ndarray):
+    """The sweep's best log-depth per pixel (h,w) tensor: the plane of highest ``loglik`` (D,h,w) among the
+    evenly spaced ``log_centres`` (D,) (log metres), refined by a parabola through it and its two neighbours
+    (at most half a plane's spacing; none at the first and last plane or where the peak is flat)."""
+    import torch
+
+    lc = torch.as_tensor(np.asarray(log_centres, dtype=np.float32))
+    D = lc.numel()
+    k = loglik.argmax(0)
+    km, kp = (k - 1).clamp_min(0), (k + 1).clamp_max(D - 1)
+    l0, lm, lp = (loglik.gather(0, i.unsqueeze(0))[0] for i in (k, km, kp))
+    curv = lm - 2 * l0 + lp
+    inner = (k > 0) & (k < D - 1) & (curv < 0)
+    offset = torch.where(inner, 0.5 * (lm - lp) / torch.where(inner, curv, torch.ones_like(curv)),
+                         torch.zeros_like(curv)).clamp(-0.5, 0.5)
+    step = float(lc[1] - lc[0]) if D > 1 else 0.0
+    return lc[k] + offset * step
+
+
 def posterior(prior, loglik, informative, prior_power: float = 1.0):
     """Posterior bin probabilities (K,h,w) float32 tensor: p^a·exp(``loglik``), normalised, where
     ``informative`` (h,w bool tensor) and the product has mass; the ``prior`` (K,h,w tensor) elsewhere."""
@@ -229,8 +249,6 @@ class MultiviewPosterior:
 
     def neighbours(self, seq, i: int) -> list[int]:
         """Frames of ``seq`` that serve ``i`` as sources (by baseline; at most ``sources``)."""
-        from mono_map.depth.adapt import choose_sources
-
         c = self.cfg
         lo, hi = max(0, i - c.max_offset), min(len(seq) - 1, i + c.max_offset)
         idx = list(range(lo, hi + 1))

@@ -72,6 +72,19 @@ def photometric_error(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return SSIM_WEIGHT * ssim_error(pred, target).mean(1, keepdim=True) + (1 - SSIM_WEIGHT) * l1
 
 
+def min_reprojection_error(target: torch.Tensor, sources: list[torch.Tensor], depth: torch.Tensor, K: torch.Tensor,
+                           poses: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per pixel the minimum over the sources of the warped error (B,1,H,W) (1e3 where no source sees the
+    pixel) and the pixels some source sees (B,1,H,W) bool."""
+    errs, valids = [], []
+    for src, T in zip(sources, poses):
+        warped, valid = warp(src, depth, K, T)
+        e = photometric_error(warped, target)
+        errs.append(torch.where(valid, e, torch.full_like(e, 1e3)))   # outside the source: never the minimum
+        valids.append(valid)
+    return torch.cat(errs, 1).min(1, keepdim=True).values, torch.stack(valids).any(0)
+
+
 def reprojection_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: torch.Tensor, K: torch.Tensor,
                       poses: list[torch.Tensor], mask: torch.Tensor | None = None, automask: bool = True,
                       trim: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -81,14 +94,15 @@ def reprojection_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: 
     (e.g. no sky, no padding). ``trim`` > 0 also leaves out that fraction of the counted pixels with the
     highest error (a robust mean against what no static scene explains: traffic, reflections).
     Returns (mean over the counted pixels, counted-pixel mask)."""
-    errs, valids = [], []
-    for src, T in zip(sources, poses):
-        warped, valid = warp(src, depth, K, T)
-        e = photometric_error(warped, target)
-        errs.append(torch.where(valid, e, torch.full_like(e, 1e3)))   # outside the source: never the minimum
-        valids.append(valid)
-    reproj = torch.cat(errs, 1).min(1, keepdim=True).values
-    used = torch.stack(valids).any(0)
+    reproj, used = min_reprojection_error(target, sources, depth, K, poses)
+    return reduce_reprojection(reproj, used, target, sources, mask, automask, trim)
+
+
+def reduce_reprojection(reproj: torch.Tensor, used: torch.Tensor, target: torch.Tensor, sources: list[torch.Tensor],
+                        mask: torch.Tensor | None = None, automask: bool = True, trim: float = 0.0
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`reprojection_loss` from its per-pixel error ``reproj`` and seen pixels ``used`` (the output of
+    :func:`min_reprojection_error`)."""
     if automask:   # the unwarped sources' error does not depend on the depth: no gradient
         with torch.no_grad():
             ident = torch.cat([photometric_error(s, target) for s in sources], 1).min(1, keepdim=True).values
