@@ -224,3 +224,12 @@ def test_rectangles_overlap():
     sq = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], float)
     others = np.stack([sq + [1.9, 0], sq + [2.1, 0], sq * 0.2, sq @ np.array([[0.7071, 0.7071], [-0.7071, 0.7071]]) + [2.3, 2.3]])
     assert rectangles_overlap(sq, others).tolist() == [True, False, True, False]
+
+
+def test_render_trainset_refuses_a_bad_traffic_count(tmp_path, capsys):
+    from mono_map.cli import main
+
+    assert main(["render-trainset", "--root", str(tmp_path / "ts"), "--traffic", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert "--traffic" in err and "Traceback" not in err
+    assert not (tmp_path / "ts").exists()
