@@ -38,7 +38,10 @@ def _digest(*arrays) -> str:
     return h.hexdigest()[:16]
 
 
-TRAFFIC = TrafficParams(adjacent_density=0.8, ahead_spacing=40.0, large_fraction=0.6)
+TRAFFIC = TrafficParams(adjacent_density=0.8, ahead_spacing=40.0, large_fraction=0.6, kerb_large_density=0.5)
+# the first towns with traffic (rendered into the training cache before kerb_large_density existed)
+H_TOWN_HASHES = {"h01_0a": "09148306e7c7ed88", "h02_0a": "e07346b66f2a7b6c", "h03_0a": "71c9347fdb86a897",
+                 "h04_0a": "0f774c551d694a17", "h05_0a": "ec99c34c496a7834", "h06_0a": "9c91750e04f97844"}
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +61,8 @@ def test_recipes_without_traffic_keep_their_hash_town_and_pixels():
     specs = {s.name: s for s in [validation_town()] + training_towns()[:6]}
     for name, h in TOWN_HASHES_BEFORE.items():
         assert randomized_recipe(specs[name]).content_hash() == h, name
-        assert specs[name].to_dict() == {k: v for k, v in vars(specs[name]).items() if k != "traffic"}
+        new_keys = ("traffic", "kerb_trucks")
+        assert specs[name].to_dict() == {k: v for k, v in vars(specs[name]).items() if k not in new_keys}
     recipe = load_recipe("tiny")
     assert recipe.traffic == TrafficParams() and not recipe.traffic.enabled()
     town = build_town(recipe)
@@ -134,8 +138,11 @@ def test_the_camera_car_never_intersects_a_vehicle(busy_tiny):
     assert blocked_seen >= 1                                  # the test sees the vehicles it is meant to see
     path = build_road_path(town_poses(recipe)[1])
     index = PathIndex(path, margin=70.0)
-    adjacent = [f for f in town.lane_vehicles if index.min_distance(f.mean(0)[None]) > 1.0]
-    assert adjacent
+    adjacent = [f for f in town.lane_vehicles if index.min_distance(f.mean(0)[None]) > 1.0]   # and at the kerbs
+    k = index.query(np.array([f.mean(0) for f in adjacent]))[0]
+    lateral = np.einsum("ij,ij->i", np.array([f.mean(0) for f in adjacent]) - path.points[k][:, [0, 2]],
+                        path.right[k][:, [0, 2]])
+    assert (lateral < 0).sum() >= 2 and (lateral > 0).sum() >= 1    # left lane/kerb; right kerb (a truck parked)
     for f in adjacent:                                        # footprints, sampled: LANE_CLEARANCE from the path
         c3 = np.array([f.mean(0)[0], 0.0, f.mean(0)[1]])
         fw, rw = f[0] - f[3], f[0] - f[1]
@@ -210,8 +217,13 @@ def test_traffic_towns_are_a_family_of_their_own(tmp_path):
     assert not {t.seed for t in towns} & {t.seed for t in training_towns() + [validation_town()]}
     for t in towns:
         tp = randomized_recipe(t).traffic
-        assert tp.enabled() and tp.large_fraction > 0 and tp.ahead_spacing >= 20
-        assert t.to_dict()["traffic"] is True
+        assert tp.enabled() and tp.large_fraction > 0 and tp.ahead_spacing >= 20 and tp.kerb_large_density == 0
+        assert t.to_dict()["traffic"] is True and "kerb_trucks" not in t.to_dict()
+        assert randomized_recipe(t).content_hash() == H_TOWN_HASHES[t.name]
+    kerb = traffic_towns(6, kerb_trucks=True)
+    assert [t.name for t in kerb] == ["k" + t.name[1:] for t in old]
+    assert not {t.seed for t in kerb} & {t.seed for t in towns + training_towns()}
+    assert all(randomized_recipe(t).traffic.kerb_large_density > 0 for t in kerb)
     spec = TownSpec(name="h04_test", trajectory="04", first_pose=0, pose_stride=1, frames=24, seed=777, traffic=True)
     assert render_town(tmp_path, spec) > 0
     tc = TownCache(tmp_path / "towns" / "h04_test")

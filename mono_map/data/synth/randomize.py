@@ -31,12 +31,15 @@ class TownSpec:
     frames: int                 # poses of the window; a town with traffic ahead renders those clear of it
     seed: int
     traffic: bool = False       # vehicles in the driving lanes and large vehicles (the "h" family, issue 31)
+    kerb_trucks: bool = False   # with traffic: large vehicles parked at the kerbs too (the "k" family)
 
     def to_dict(self) -> dict:
-        """The spec as stored in the cache; ``traffic`` only when set, so older towns keep their identity."""
+        """The spec as stored in the cache; ``traffic``/``kerb_trucks`` only when set, so older towns keep
+        their identity."""
         d = asdict(self)
-        if not self.traffic:
-            d.pop("traffic")
+        for key in ("traffic", "kerb_trucks"):
+            if not d[key]:
+                d.pop(key)
         return d
 
 
@@ -70,9 +73,11 @@ def randomized_recipe(spec: TownSpec) -> Recipe:
     traffic = TrafficParams()
     if spec.traffic:                         # its own stream: the draws above and below are those of any town
         t = np.random.default_rng([spec.seed, 131])
+        kerb = float(np.random.default_rng([spec.seed, 132]).uniform(0.3, 0.8)) if spec.kerb_trucks else 0.0
         traffic = TrafficParams(adjacent_density=float(t.uniform(0.3, 0.9)),
                                 ahead_spacing=float(t.uniform(35.0, 90.0)),
-                                large_fraction=float(t.uniform(0.3, 0.7)), van_fraction=float(t.uniform(0.1, 0.35)))
+                                large_fraction=float(t.uniform(0.3, 0.7)), van_fraction=float(t.uniform(0.1, 0.35)),
+                                kerb_large_density=kerb)
     return Recipe(
         name=spec.name, seed=spec.seed, frames=spec.frames, trajectory=spec.trajectory,
         pose_stride=spec.pose_stride, first_pose=spec.first_pose,
@@ -190,16 +195,19 @@ def training_towns(seed: int = 2026, frames_per_town: int = 500, stride: int = 2
 
 
 TRAFFIC_PREFIX = "h"
+KERB_PREFIX = "k"
 
 
-def traffic_towns(n: int = 4, frames: int = 250, seed: int = 2026) -> list[TownSpec]:
+def traffic_towns(n: int = 4, frames: int = 250, seed: int = 2026, kerb_trucks: bool = False) -> list[TownSpec]:
     """The first ``n`` windows of :func:`training_towns` as towns with lane traffic and large vehicles (issue
     31): named ``h…`` (``t01_0a`` → ``h01_0a``), ``frames`` poses each, other seeds (other towns, light and
-    camera); the frames whose camera would be inside a vehicle are not rendered (traffic.clear_frames)."""
+    camera); the frames whose camera would be inside a vehicle are not rendered (traffic.clear_frames).
+    ``kerb_trucks``: the ``k…`` family, the same with large vehicles parked at both kerbs too (other seeds)."""
+    prefix, offset = (KERB_PREFIX, 600_000) if kerb_trucks else (TRAFFIC_PREFIX, 500_000)
     out = []
     for s in training_towns(seed)[:n]:
-        out.append(replace(s, name=TRAFFIC_PREFIX + s.name[1:], frames=min(frames, s.frames), seed=s.seed + 500_000,
-                           traffic=True))
+        out.append(replace(s, name=prefix + s.name[1:], frames=min(frames, s.frames), seed=s.seed + offset,
+                           traffic=True, kerb_trucks=kerb_trucks))
     return out
 
 

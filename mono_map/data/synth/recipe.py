@@ -63,9 +63,10 @@ class TrafficParams:
     ahead_spacing: float = field(default=0.0, metadata=bounded(lo=0))  # metres between vehicles standing in the camera's own lane (0 = none); frames whose camera would be inside or < 3 m behind one are not rendered (training towns only)
     large_fraction: float = field(default=0.0, metadata=bounded(lo=0, hi=1))  # share of large vehicles (box trucks, buses, tankers, semi-trailers; L 7-13 m, H 3-4 m) among the lane vehicles
     van_fraction: float = field(default=0.2, metadata=bounded(lo=0, hi=1))  # share of vans among the other lane vehicles (the rest are cars)
+    kerb_large_density: float = field(default=0.0, metadata=bounded(lo=0, hi=1))  # probability that a kerb slot (both sides) left free by the parked cars gets a parked large vehicle
 
     def enabled(self) -> bool:
-        return self.adjacent_density > 0 or self.ahead_spacing > 0
+        return self.adjacent_density > 0 or self.ahead_spacing > 0 or self.kerb_large_density > 0
 
 
 @dataclass(frozen=True)
@@ -115,6 +116,8 @@ class Recipe:
         d.pop("description")
         if self.traffic == TrafficParams():
             d.pop("traffic")          # the towns before lane traffic existed keep their hash
+        elif self.traffic.kerb_large_density == 0:
+            d["traffic"].pop("kerb_large_density")    # added after the first towns with traffic: theirs too
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

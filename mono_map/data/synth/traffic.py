@@ -1,12 +1,13 @@
 """Traffic in the driving lanes and large vehicles (issue 31): what real KITTI drives beside and behind.
 
 Vehicles stand (they do not move: the town is static) in the adjacent, left lane beside and ahead of the
-camera, and in the camera's own lane ahead of it. Among them are large vehicles: box trucks, buses, tankers
+camera, in the camera's own lane ahead of it, and (``kerb_large_density``) large ones parked at both kerbs
+where the parked cars left room. Among them are large vehicles: box trucks, buses, tankers
 and semi-trailers (L 7-13 m, W 2.4-2.6 m, H 3.0-4.0 m), a cab + body mesh each.
 
 The trajectory is fixed, so the two lanes are kept clear of the camera differently:
 
-- adjacent lane: every vehicle's footprint stays :data:`LANE_CLEARANCE` metres from every road-path point
+- adjacent lane and kerb: every vehicle's footprint stays :data:`LANE_CLEARANCE` metres from every road-path point
   (every pass of the trajectory, the 120 m lead-in and run-out included): the camera never reaches one;
 - own lane: the vehicles stand on the path, so the frames whose camera would be inside one or less than
   :data:`EGO_AHEAD` metres behind it are not rendered (:func:`clear_frames`; training towns only).
@@ -24,6 +25,7 @@ from mono_map.data.synth import materials as M
 from mono_map.data.synth.meshes import box, cylinder
 from mono_map.data.synth.placement import BLACK, LARGE, VAN, box_axes, clear_of_road, footprint_samples, frame_at
 from mono_map.data.synth.props import CAR_COLORS, BLACK_PAINT, car_mesh
+from mono_map.data.synth.recipe import TrafficParams
 
 LANE_CLEARANCE = 1.5     # metres from any road-path point to an adjacent-lane vehicle's footprint
 EGO_AHEAD = 3.0          # metres: a rendered frame has no own-lane vehicle closer ahead of the camera than this
@@ -82,6 +84,27 @@ def add_traffic(mb, objs, occ, path, index, recipe, counts) -> tuple[np.ndarray,
                 counts["lane_vehicles"] += 1
                 counts["large_vehicles"] += int(v["kind"] in LARGE_KINDS)
             s += v["L"] + tp.ahead_spacing * float(rng.uniform(0.6, 1.4))
+    if tp.kerb_large_density > 0:
+        large = TrafficParams(large_fraction=1.0)
+        for side in (+1, -1):
+            centre = 0.5 * st.lane_width + st.parking_width / 2 + 0.1 if side > 0 else \
+                1.5 * st.lane_width + st.parking_width / 2 + 0.1
+            s = float(rng.uniform(0, 10))
+            while s < path.s[-1]:
+                v = _draw_vehicle(rng, large)
+                place = rng.random() < tp.kerb_large_density
+                jitter = float(rng.normal(0, 0.1))
+                yaw = float(rng.normal(0, 0.02))
+                if place:
+                    lat = max(centre, LANE_CLEARANCE + v["W"] / 2 + 0.15) + jitter
+                    foot = _place(mb, objs, occ, path, index, s + v["L"] / 2, side * lat, yaw, side < 0, v,
+                                  LANE_CLEARANCE)
+                    if foot is not None:
+                        feet.append(foot[0])
+                        ids.append(foot[1])
+                        counts["lane_vehicles"] += 1
+                        counts["large_vehicles"] += 1
+                s += v["L"] + float(rng.uniform(2.0, 12.0))
     return np.array(feet, np.float64).reshape(-1, 4, 2), np.array(ids, np.int32)
 
 
