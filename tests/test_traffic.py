@@ -29,6 +29,7 @@ TOWN_HASHES_BEFORE = {"val09": "32d5daf90668ef53", "t01_0a": "064d1a3f026e3ba9",
                       "t06_0a": "3034f1ccf1c1231d"}
 TINY_TOWN_BEFORE = "e0bc39febc6707fa"         # sha256 of the tiny town's arrays
 TINY_FRAME2_BEFORE = "dcea3c8b23146504"       # sha256 of tiny frame 2: rgb, depth, LiDAR points
+TRAINSET_FRAME1_BEFORE = "59d3630b99d1986e"   # sha256 of frame 1 of a training-cache town (tests/test_trainset's SPEC)
 
 
 def _digest(*arrays) -> str:
@@ -70,6 +71,12 @@ def test_recipes_without_traffic_keep_their_hash_town_and_pixels():
                    town.obj_flags, town.obj_origin, town.obj_params) == TINY_TOWN_BEFORE
     assert town.lane_vehicles.shape == (0, 4, 2) and "lane_vehicles" not in town.stats
     assert _digest(*FrameRenderer(recipe, town, nthreads=1).render(2)) == TINY_FRAME2_BEFORE
+    from mono_map.data.synth.trainset import TownRenderer
+
+    spec = TownSpec(name="t04_test", trajectory="04", first_pose=100, pose_stride=3, frames=3, seed=12345)
+    tr = TownRenderer(spec, 1)
+    assert tr.frames == 3 and tr.pose_index.tolist() == [0, 1, 2]
+    assert _digest(*tr.render(1)) == TRAINSET_FRAME1_BEFORE
     # a [traffic] section at its defaults is the same recipe
     assert replace(recipe, traffic=TrafficParams()).content_hash() == HASHES_BEFORE["tiny"]
     assert replace(recipe, traffic=TRAFFIC).content_hash() != HASHES_BEFORE["tiny"]
