@@ -204,6 +204,10 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
         raise MonoMapError(f"--frames: recipe {recipe.name} has {recipe.frames} frames, asked for {n}")
     if workers < 1:
         raise MonoMapError(f"--workers: must be >= 1, got {workers}")
+    if recipe.traffic.ahead_spacing > 0:
+        raise MonoMapError(f"{recipe.path or recipe.name}: [traffic] ahead_spacing skips the frames that would drive "
+                           "into a vehicle; a KITTI-layout sequence needs every frame (only training towns, "
+                           "mono-map render-trainset, support it)")
     seq_dir = root / "sequences" / recipe.name
     partial_path = seq_dir / writer.PARTIAL_MARKER
     partial = writer.read_marker(seq_dir, partial=True)

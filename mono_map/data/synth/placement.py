@@ -14,6 +14,7 @@ BLACK = 1
 BRICK = 2
 STOREFRONT = 4
 VAN = 8
+LARGE = 16          # a large vehicle: box truck, bus, tanker, semi-trailer (mono_map.data.synth.traffic)
 
 
 class ObjectTable:

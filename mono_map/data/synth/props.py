@@ -11,10 +11,10 @@ from mono_map.data.synth import materials as M
 from mono_map.data.synth.meshes import blob, box, cylinder
 from mono_map.data.synth.placement import BLACK, VAN, box_axes, clear_of_road, footprint_samples, frame_at
 
-_CAR_COLORS = [(0.85, 0.85, 0.85), (0.62, 0.63, 0.65), (0.35, 0.36, 0.38), (0.12, 0.18, 0.38),
+CAR_COLORS = [(0.85, 0.85, 0.85), (0.62, 0.63, 0.65), (0.35, 0.36, 0.38), (0.12, 0.18, 0.38),
                (0.55, 0.08, 0.07), (0.10, 0.26, 0.16), (0.72, 0.66, 0.52), (0.90, 0.90, 0.88),
                (0.25, 0.25, 0.27), (0.45, 0.50, 0.60)]
-_BLACK_PAINT = (0.025, 0.025, 0.03)
+BLACK_PAINT = (0.025, 0.025, 0.03)
 
 
 def add_cars(mb, objs, occ, path, index, rng, recipe, side, counts):
@@ -30,7 +30,7 @@ def add_cars(mb, objs, occ, path, index, rng, recipe, side, counts):
         W = float(rng.uniform(1.95, 2.2) if van else rng.uniform(1.72, 1.86))
         H = float(rng.uniform(2.2, 2.9) if van else rng.uniform(1.38, 1.55))
         black = rng.random() < cp.black_fraction
-        color = _BLACK_PAINT if black else _CAR_COLORS[int(rng.integers(len(_CAR_COLORS)))]
+        color = BLACK_PAINT if black else CAR_COLORS[int(rng.integers(len(CAR_COLORS)))]
         place = rng.random() < cp.density
         jitter = float(rng.normal(0, 0.12))
         yaw = float(rng.normal(0, 0.03))
@@ -46,13 +46,13 @@ def add_cars(mb, objs, occ, path, index, rng, recipe, side, counts):
                 occ.mark(pts)
                 flags = (BLACK if black else 0) | (VAN if van else 0)
                 oid = objs.add(color, flags)
-                _car_mesh(mb, oid, center, f2, r2, L, W, H, van)
+                car_mesh(mb, oid, center, f2, r2, L, W, H, van)
                 counts["cars"] += 1
                 counts["black_cars"] += int(black)
         s += L + gap if place else float(rng.uniform(4.0, 9.0))
 
 
-def _car_mesh(mb, oid, ground_center, f, r, L, W, H, van):
+def car_mesh(mb, oid, ground_center, f, r, L, W, H, van):
     axes = box_axes(f, r)
     up = np.array([0.0, -1.0, 0.0])
     clearance = 0.28

@@ -9,13 +9,13 @@ material palette, blur, noise, JPEG artefacts). Everything is a pure function of
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from mono_map.data.synth import materials as M
 from mono_map.data.synth.recipe import (BuildingParams, CarParams, LightParams, PropParams, Recipe, StreetParams,
-                                        TreeParams)
+                                        TrafficParams, TreeParams)
 
 N_MATERIALS = 12
 
@@ -28,8 +28,19 @@ class TownSpec:
     trajectory: str
     first_pose: int
     pose_stride: int
-    frames: int
+    frames: int                 # poses of the window; a town with traffic ahead renders those clear of it
     seed: int
+    traffic: bool = False       # vehicles in the driving lanes and large vehicles (the "h" family, issue 31)
+    kerb_trucks: bool = False   # with traffic: large vehicles parked at the kerbs too (the "k" family)
+
+    def to_dict(self) -> dict:
+        """The spec as stored in the cache; ``traffic``/``kerb_trucks`` only when set, so older towns keep
+        their identity."""
+        d = asdict(self)
+        for key in ("traffic", "kerb_trucks"):
+            if not d[key]:
+                d.pop(key)
+        return d
 
 
 @dataclass(frozen=True)
@@ -59,6 +70,14 @@ def randomized_recipe(spec: TownSpec) -> Recipe:
     u = lambda a, b: float(r.uniform(a, b))  # noqa: E731
     h_min = u(5.0, 14.0)
     w_min = u(7.0, 14.0)
+    traffic = TrafficParams()
+    if spec.traffic:                         # its own stream: the draws above and below are those of any town
+        t = np.random.default_rng([spec.seed, 131])
+        kerb = float(np.random.default_rng([spec.seed, 132]).uniform(0.3, 0.8)) if spec.kerb_trucks else 0.0
+        traffic = TrafficParams(adjacent_density=float(t.uniform(0.3, 0.9)),
+                                ahead_spacing=float(t.uniform(35.0, 90.0)),
+                                large_fraction=float(t.uniform(0.3, 0.7)), van_fraction=float(t.uniform(0.1, 0.35)),
+                                kerb_large_density=kerb)
     return Recipe(
         name=spec.name, seed=spec.seed, frames=spec.frames, trajectory=spec.trajectory,
         pose_stride=spec.pose_stride, first_pose=spec.first_pose,
@@ -74,6 +93,7 @@ def randomized_recipe(spec: TownSpec) -> Recipe:
         props=PropParams(pole_spacing=u(15.0, 45.0), fence_fraction=u(0.0, 0.7)),
         light=LightParams(sun_azimuth_deg=u(-180.0, 180.0), sun_elevation_deg=u(12.0, 70.0),
                           haze_distance=float(np.exp(r.uniform(np.log(70.0), np.log(600.0)))), exposure=1.0),
+        traffic=traffic,
     )
 
 
@@ -171,6 +191,23 @@ def training_towns(seed: int = 2026, frames_per_town: int = 500, stride: int = 2
                         out.append(TownSpec(name=f"t{traj}_{k}{'ab'[v] if v < 2 else v}", trajectory=traj,
                                             first_pose=first, pose_stride=s, frames=f,
                                             seed=seed * 1000 + int(traj) * 50 + k * 5 + v))
+    return out
+
+
+TRAFFIC_PREFIX = "h"
+KERB_PREFIX = "k"
+
+
+def traffic_towns(n: int = 4, frames: int = 250, seed: int = 2026, kerb_trucks: bool = False) -> list[TownSpec]:
+    """The first ``n`` windows of :func:`training_towns` as towns with lane traffic and large vehicles (issue
+    31): named ``h…`` (``t01_0a`` → ``h01_0a``), ``frames`` poses each, other seeds (other towns, light and
+    camera); the frames whose camera would be inside a vehicle are not rendered (traffic.clear_frames).
+    ``kerb_trucks``: the ``k…`` family, the same with large vehicles parked at both kerbs too (other seeds)."""
+    prefix, offset = (KERB_PREFIX, 600_000) if kerb_trucks else (TRAFFIC_PREFIX, 500_000)
+    out = []
+    for s in training_towns(seed)[:n]:
+        out.append(replace(s, name=prefix + s.name[1:], frames=min(frames, s.frames), seed=s.seed + offset,
+                           traffic=True, kerb_trucks=kerb_trucks))
     return out
 
 

@@ -52,6 +52,24 @@ class CarParams:
 
 
 @dataclass(frozen=True)
+class TrafficParams:
+    """Vehicles standing in the driving lanes, and large vehicles (trucks, buses, tankers) among them.
+
+    All zero (the default) = no lane traffic: a recipe without a ``[traffic]`` section builds the town it
+    built before (the section is left out of :meth:`Recipe.content_hash` at its default).
+    """
+
+    adjacent_density: float = field(default=0.0, metadata=bounded(lo=0, hi=1))  # fraction of the adjacent (left) lane filled with standing vehicles, beside and ahead of the camera
+    ahead_spacing: float = field(default=0.0, metadata=bounded(lo=0))  # metres between vehicles standing in the camera's own lane (0 = none); frames whose camera would be inside or < 3 m behind one are not rendered (training towns only)
+    large_fraction: float = field(default=0.0, metadata=bounded(lo=0, hi=1))  # share of large vehicles (box trucks, buses, tankers, semi-trailers; L 7-13 m, H 3-4 m) among the lane vehicles
+    van_fraction: float = field(default=0.2, metadata=bounded(lo=0, hi=1))  # share of vans among the other lane vehicles (the rest are cars)
+    kerb_large_density: float = field(default=0.0, metadata=bounded(lo=0, hi=1))  # probability that a kerb slot (both sides) left free by the parked cars gets a parked large vehicle
+
+    def enabled(self) -> bool:
+        return self.adjacent_density > 0 or self.ahead_spacing > 0 or self.kerb_large_density > 0
+
+
+@dataclass(frozen=True)
 class TreeParams:
     spacing: float = field(default=14.0, metadata=bounded(lo=0, lo_open=True))  # metres between tree slots along each sidewalk
     density: float = field(default=0.6, metadata=bounded(lo=0, hi=1))  # probability a slot gets a tree
@@ -88,6 +106,7 @@ class Recipe:
     trees: TreeParams = field(default_factory=TreeParams)
     props: PropParams = field(default_factory=PropParams)
     light: LightParams = field(default_factory=LightParams)
+    traffic: TrafficParams = field(default_factory=TrafficParams)
     path: str = ""                    # where it was loaded from (not part of the hash)
 
     def content_hash(self) -> str:
@@ -95,11 +114,16 @@ class Recipe:
         d = dataclasses.asdict(self)
         d.pop("path")
         d.pop("description")
+        if self.traffic == TrafficParams():
+            d.pop("traffic")          # the towns before lane traffic existed keep their hash
+        elif self.traffic.kerb_large_density == 0:
+            d["traffic"].pop("kerb_large_density")    # added after the first towns with traffic: theirs too
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
 _SECTIONS = {"street": StreetParams, "buildings": BuildingParams, "cars": CarParams,
-             "trees": TreeParams, "props": PropParams, "light": LightParams}
+             "trees": TreeParams, "props": PropParams, "light": LightParams,
+             "traffic": TrafficParams}
 
 
 def recipe_path(name_or_path: str | os.PathLike) -> Path:
@@ -172,5 +196,7 @@ def _validate(r: Recipe, path) -> None:
             v = getattr(sec, name, None)
             if v is not None and not 0.0 <= v <= 1.0:
                 raise MonoMapError(f"{path}: {name} must be in [0, 1], got {v}")
+    if 0 < r.traffic.ahead_spacing < 20.0:
+        raise MonoMapError(f"{path}: [traffic] ahead_spacing must be 0 (none) or >= 20 m, got {r.traffic.ahead_spacing}")
     if r.buildings.height_min > r.buildings.height_max or r.buildings.width_min > r.buildings.width_max:
         raise MonoMapError(f"{path}: [buildings] min must not exceed max")

@@ -19,6 +19,7 @@ from mono_map.data.synth.meshes import MeshBuilder, box
 from mono_map.data.synth.placement import (BRICK, STOREFRONT, ObjectTable, Occupancy, box_axes, clear_of_road,
                                            footprint_samples, frame_at)
 from mono_map.data.synth.props import add_cars, add_fences, add_trees_and_poles
+from mono_map.data.synth.traffic import add_traffic
 from mono_map.data.synth.trajectory import PathIndex, RoadPath, build_road_path, town_poses
 
 GROUND_RADIUS = 60.0      # metres of ground kept around the road path
@@ -36,13 +37,16 @@ class Town:
     tri_junction: np.ndarray    # (T,) bool, ground triangles where two road passes meet (no markings)
     vert_ls: np.ndarray         # (V, 2) float32 ground attributes: lateral offset l (m, + = right), arc length s
     obj_color: np.ndarray       # (N, 3) float32 base albedo
-    obj_flags: np.ndarray       # (N,) int32 BLACK | BRICK | STOREFRONT | VAN
+    obj_flags: np.ndarray       # (N,) int32 BLACK | BRICK | STOREFRONT | VAN | LARGE
     obj_origin: np.ndarray      # (N, 3) float64 facade texture origin (a footprint corner at ground level)
     obj_params: np.ndarray      # (N, 4) float32 facade: window spacing, floor height, window width, window height
     street: object              # recipe StreetParams
     seed: int
     glass_fraction: float = 0.6 # share of facade windows that are reflective glass (others curtained)
     stats: dict = field(default_factory=dict)
+    lane_vehicles: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 2)))  # (N, 4, 2) x-z footprint
+    # corners (world, m) of the vehicles standing in the driving lanes (recipe [traffic]); see traffic.clear_frames
+    lane_vehicle_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))  # (N,) their object ids
 
     @property
     def road_edges(self) -> tuple[float, float]:
@@ -75,6 +79,9 @@ def build_town(recipe) -> Town:
         add_cars(mb, objs, occ, path, index, rng, recipe, side, counts)
         add_trees_and_poles(mb, objs, occ, path, index, rng, recipe, side, edges[side], counts)
         add_fences(mb, objs, occ, path, index, rng, recipe, side, edges[side], counts)
+    lane_vehicles, lane_ids = np.zeros((0, 4, 2)), np.zeros(0, np.int32)
+    if recipe.traffic.enabled():                  # after everything else, from its own random stream
+        lane_vehicles, lane_ids = add_traffic(mb, objs, occ, path, index, recipe, counts)
 
     V, F, mat, obj = mb.arrays()
     ls = np.zeros((len(V), 2), np.float32)
@@ -91,6 +98,7 @@ def build_town(recipe) -> Town:
         obj_origin=np.array(objs.origin, np.float64).reshape(n, 3),
         obj_params=np.array(objs.params, np.float32).reshape(n, 4),
         street=st, seed=recipe.seed, glass_fraction=recipe.buildings.glass_fraction, stats=counts,
+        lane_vehicles=lane_vehicles, lane_vehicle_ids=lane_ids,
     )
 
 

@@ -22,7 +22,6 @@ import os
 import sys
 import time
 from concurrent.futures import as_completed
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -78,13 +77,16 @@ class TownCache:
         return np.flatnonzero(np.asarray(self.done))
 
 
-def create_town(root: Path, spec: TownSpec, recipe_hash: str, appearance: dict, K: np.ndarray) -> Path:
-    """Allocate (or find) a town's files; a town of another spec/hash under the same name is an error."""
+def create_town(root: Path, spec: TownSpec, recipe_hash: str, appearance: dict, K: np.ndarray,
+                frames: int | None = None) -> Path:
+    """Allocate (or find) a town's files; a town of another spec/hash under the same name is an error.
+    ``frames``: how many frames it holds (default ``spec.frames``; fewer where traffic skips some)."""
     from mono_map.io import write_json_atomic
 
     d = Path(root) / "towns" / spec.name
-    meta = {"version": VERSION, "spec": asdict(spec), "recipe_hash": recipe_hash, "appearance": appearance,
-            "frames": spec.frames, "height": HEIGHT, "width": WIDTH, "K": np.asarray(K).tolist(),
+    F = spec.frames if frames is None else int(frames)
+    meta = {"version": VERSION, "spec": spec.to_dict(), "recipe_hash": recipe_hash, "appearance": appearance,
+            "frames": F, "height": HEIGHT, "width": WIDTH, "K": np.asarray(K).tolist(),
             "depth_scale": DEPTH_SCALE, "no_surface": NO_SURFACE}
     if (d / "meta.json").is_file():
         old = json.loads((d / "meta.json").read_text())
@@ -92,7 +94,6 @@ def create_town(root: Path, spec: TownSpec, recipe_hash: str, appearance: dict, 
             raise MonoMapError(f"{d}: holds a different town (spec or recipe changed); remove it to re-render")
         return d
     d.mkdir(parents=True, exist_ok=True)
-    F = spec.frames
     for name, nbytes in (("image.u8", F * HEIGHT * WIDTH * 3), ("dense.u16", F * HEIGHT * WIDTH * 2),
                          ("lidar.u16", F * HEIGHT * WIDTH * 2), ("done.u8", F)):
         with open(d / name, "wb") as fh:
@@ -113,6 +114,7 @@ class TownRenderer:
         from mono_map.data.synth.placement import BLACK
         from mono_map.data.synth.randomize import randomized_appearance, randomized_recipe, recolor_objects
         from mono_map.data.synth.town import build_town
+        from mono_map.data.synth.traffic import clear_frames
         from mono_map.data.synth.trajectory import frame_poses
         from mono_map.config import KITTI_IMAGE_HEIGHT, KITTI_IMAGE_WIDTH
         from mono_map.geometry import T_cam_cam0_from_projection, pose_inverse
@@ -139,8 +141,16 @@ class TownRenderer:
                               horizon=np.array(a.horizon, np.float32), haze_distance=base.haze_distance,
                               exposure=1.0, albedo_gain=np.array(a.albedo_gain, np.float32))
         self.lidar_dirs = ray_directions()
-        self.poses = frame_poses(self.recipe)
+        poses = frame_poses(self.recipe)
+        # the window's poses whose camera is clear of the vehicles in its lane (all of them without traffic)
+        self.pose_index = np.flatnonzero(clear_frames(self.town.lane_vehicles, poses))
+        self.poses = poses[self.pose_index]
         self.nthreads = nthreads
+
+    @property
+    def frames(self) -> int:
+        """Frames this town renders (the window's poses less those inside or just behind a vehicle)."""
+        return len(self.poses)
 
     def render(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rgb (H,W,3) uint8, dense code (H,W) uint16, lidar code (H,W) uint16) of frame i."""
@@ -172,9 +182,9 @@ def render_town(root: Path, spec: TownSpec, nthreads: int = 1, log=None) -> int:
         if tc.done.all() and tc.meta.get("recipe_hash") == recipe.content_hash():
             return 0
     r = TownRenderer(spec, nthreads)
-    d = create_town(root, spec, recipe.content_hash(), r.app.to_dict(), r.K)
+    d = create_town(root, spec, recipe.content_hash(), r.app.to_dict(), r.K, r.frames)
     tc = TownCache(d, "r+")
-    todo = [i for i in range(spec.frames) if not tc.done[i]]
+    todo = [i for i in range(r.frames) if not tc.done[i]]
     t0 = time.perf_counter()
     for n, i in enumerate(todo):
         rgb, dense, lidar = r.render(i)
