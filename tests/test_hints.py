@@ -10,7 +10,7 @@ from mono_map.depth.adapt import AdaptConfig, load_frames
 from mono_map.depth.adapter import Adapter, downsample_images
 from mono_map.depth.bins import DepthBins
 from mono_map.depth.hints import compute_hints, hint_mask
-from mono_map.depth.multiview import best_plane
+from mono_map.depth.multiview import parabola_peak
 from mono_map.depth.sources import choose_sources
 from mono_map.geometry import scaled_intrinsics
 from tiny_net import write_tiny_checkpoint
@@ -39,16 +39,16 @@ def wall_images(n=5, step=0.5):
     return np.stack(images), np.stack(poses)
 
 
-def test_best_plane_refines_between_planes():
+def test_parabola_peak_refines_between_planes():
     k = torch.arange(BINS.num_bins, dtype=torch.float32).view(-1, 1, 1)
     peak = torch.tensor([[20.3, 40.0, 0.0, 63.0]]).view(1, 1, 4)
     loglik = -(k - peak) ** 2
-    got = best_plane(loglik, BINS.log_centres)[0].numpy()
+    got = parabola_peak(loglik, BINS.log_centres)[0].numpy()
     lc, step = BINS.log_centres, BINS.log_width
     assert abs(got[0] - (lc[20] + 0.3 * step)) < 1e-4       # a parabola's vertex between planes
     assert abs(got[1] - lc[40]) < 1e-5                      # on a plane
     assert got[2] == np.float32(lc[0]) and got[3] == np.float32(lc[-1])   # first/last plane: not refined
-    flat = best_plane(torch.zeros(BINS.num_bins, 2, 2), BINS.log_centres)
+    flat = parabola_peak(torch.zeros(BINS.num_bins, 2, 2), BINS.log_centres)
     assert torch.all(flat == float(np.float32(lc[0])))      # a flat curve: the first plane, no refinement
 
 

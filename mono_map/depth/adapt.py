@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from mono_map.depth.sources import choose_sources
+from mono_map.errors import MonoMapError
 
 HINT_LOSSES = ("log", "head")   # Depth Hints' term: on the expected depth (log L1) or the head's own loss on the bins
-from mono_map.errors import MonoMapError
 
 ADAPT_VERSION = 1
 DEFAULT_FRAMES = 500   # frames adapted on unless told (build's default too); a synthetic sequence is rendered that far

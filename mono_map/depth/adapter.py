@@ -9,11 +9,8 @@ import torch
 import torch.nn.functional as F
 
 from mono_map.depth import photometric
+from mono_map.depth.photometric import to_tensor
 from mono_map.geometry import scaled_intrinsics
-
-
-def to_tensor(images: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
 
 
 # ------------------------------------------------------------------ the adapter

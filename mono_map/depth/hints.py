@@ -4,7 +4,7 @@ as a supervised target, used only where it explains the target image better than
 A hint is computed once per target frame from the project's one plane sweep (:mod:`mono_map.depth.multiview`:
 every source warped through fronto-parallel planes at the K bin centres, SSIM+L1 in grey, the minimum over the
 sources, averaged over ``window``×``window`` pixels) with the sequence's known metric poses, so it is metric:
-the plane of lowest cost, refined between planes by a parabola (:func:`~mono_map.depth.multiview.best_plane`).
+the plane of lowest cost, refined between planes by a parabola (:func:`~mono_map.depth.multiview.parabola_peak`).
 Pixels where the sweep says nothing (fewer than half the planes seen, or the unwarped sources already match:
 a static camera, things moving with it, sky) get no hint, and with a contrast floor neither do pixels whose
 cost curve has no distinct minimum (the planes' mean cost within the floor of the best). The hint's own
@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from mono_map.depth.multiview import best_plane, likelihood, sweep_cost
-from mono_map.depth.photometric import min_reprojection_error
+from mono_map.depth.multiview import likelihood, parabola_peak, sweep_cost
+from mono_map.depth.photometric import min_reprojection_error, to_tensor
 
 
 @dataclass(frozen=True)
@@ -47,12 +47,7 @@ def sweep_hint(target: torch.Tensor, sources: list[torch.Tensor], K: np.ndarray,
     loglik, informative = likelihood(cost, ident, 1.0, window)
     if min_contrast > 0:
         informative = informative & (-loglik.mean(0) > min_contrast)
-    return torch.exp(best_plane(loglik, log_depths)), informative
-
-
-def to_tensor(images: np.ndarray) -> torch.Tensor:
-    """(N,h,w,3) uint8 → (N,3,h,w) float in [0,1]."""
-    return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
+    return torch.exp(parabola_peak(loglik, log_depths)), informative
 
 
 @torch.no_grad()

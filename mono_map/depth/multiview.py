@@ -169,17 +169,19 @@ def likelihood(cost, ident, temperature: float, window: int = 1):
     return (best.unsqueeze(0) - c) / float(temperature), informative
 
 
-def best_plane(loglik, log_centres: np.ndarray):
-    """The sweep's best log-depth per pixel (h,w) tensor: the plane of highest ``loglik`` (D,h,w) among the
-    evenly spaced ``log_centres`` (D,) (log metres), refined by a parabola through it and its two neighbours
-    (at most half a plane's spacing; none at the first and last plane or where the peak is flat)."""
+def parabola_peak(values, log_centres: np.ndarray):
+    """The log-depth of the peak per pixel (h,w) tensor of ``values`` (D,h,w) tensor over the evenly spaced
+    ``log_centres`` (D,) (log metres; a sweep's planes or the depth bins): the highest one's centre refined by a
+    parabola through it and its two neighbours (at most half a spacing; none at the first and last centre or
+    where the peak is flat). A sweep's best plane from its log-likelihood; a distribution's mode from its bin
+    probabilities."""
     import torch
 
     lc = torch.as_tensor(np.asarray(log_centres, dtype=np.float32))
     D = lc.numel()
-    k = loglik.argmax(0)
+    k = values.argmax(0)
     km, kp = (k - 1).clamp_min(0), (k + 1).clamp_max(D - 1)
-    l0, lm, lp = (loglik.gather(0, i.unsqueeze(0))[0] for i in (k, km, kp))
+    l0, lm, lp = (values.gather(0, i.unsqueeze(0))[0] for i in (k, km, kp))
     curv = lm - 2 * l0 + lp
     inner = (k > 0) & (k < D - 1) & (curv < 0)
     offset = torch.where(inner, 0.5 * (lm - lp) / torch.where(inner, curv, torch.ones_like(curv)),

@@ -8,11 +8,17 @@ of the target camera frame into the source camera frame (metres).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 SSIM_WEIGHT = 0.85          # monodepth2: 0.85·(1 − SSIM)/2 + 0.15·L1
 AUTOMASK_MARGIN = 1e-3      # a pixel counts only if warping lowers its error by more than this
+
+
+def to_tensor(images: np.ndarray) -> torch.Tensor:
+    """(N,h,w,3) uint8 images → (N,3,h,w) float tensor in [0,1]."""
+    return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
 
 
 def pixel_grid(h: int, w: int, dtype=torch.float32) -> torch.Tensor:

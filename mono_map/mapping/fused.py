@@ -136,19 +136,18 @@ def pixel_weights(spread: np.ndarray, cfg: FusedConfig) -> np.ndarray:
 def mode_shift(probs: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Per pixel (float32; shape of ``probs`` (K, ...) without its first axis) the log-depth from the mean of
     bin probabilities ``probs`` over bins with ``edges`` (K+1,) metres to their mode: the most probable bin's
-    log centre moved by a parabola through it and its two neighbours (at most half a bin). 0 for a point mass
+    log centre moved by a parabola through it and its two neighbours (at most half a bin;
+    :func:`mono_map.depth.multiview.parabola_peak`, the sweep's best plane). 0 for a point mass
     or a mode symmetric about its bin; for two modes, the step from between them onto the larger one. Rows
     summing to 0: 0."""
+    import torch
+
+    from mono_map.depth.multiview import parabola_peak
+
     p = np.asarray(probs, dtype=np.float32)
     le = np.log(np.asarray(edges, dtype=np.float64))
     lc = (0.5 * (le[:-1] + le[1:])).astype(np.float32)
-    K = p.shape[0]
-    k = p.argmax(axis=0)
-    kk = np.clip(k, 1, K - 2)
-    pm, p0, pp = (np.take_along_axis(p, (kk + o)[None], 0)[0] for o in (-1, 0, 1))
-    den = pm - 2 * p0 + pp
-    off = np.where((k == kk) & (den < 0), 0.5 * (pm - pp) / np.where(den < 0, den, -1.0), 0.0)
-    mode = lc[k] + np.clip(off, -0.5, 0.5) * (lc[1] - lc[0])
+    mode = parabola_peak(torch.as_tensor(p), lc).numpy()
     mass = p.sum(axis=0)
     mean = (p * lc.reshape((-1,) + (1,) * (p.ndim - 1))).sum(axis=0) / np.where(mass > 0, mass, 1.0)
     return np.where(mass > 0, mode - mean, 0.0).astype(np.float32)
