@@ -31,7 +31,35 @@ def test_object_rows_equal_eval_depth_and_pool(tmp_path, kitti_real):
     r = rows["object (all 10)"]
     assert r["auc_are_oracle"] <= r["auc_are"] and r["abs_rel_median_scaled"] > 0
     md = (out / "eval_real.md").read_text()
-    assert md.count("\n| object") == 3
+    assert md.count("\n| object") == 4
+    # three of object/extra's files have scrambled colour channels: named, and left out of one pool
+    assert [n for n, _ in json.loads((out / "eval_real.json").read_text())["scrambled_colour"]] == \
+        ["k000000", "k000001", "k000002"]
+    assert rows["object (colour agrees)"]["n_frames"] == 7 and "k000001 (" in md
+
+
+def test_colour_agreement_tells_a_camera_image_from_scrambled_channels(tmp_path, kitti_real, capsys):
+    from mono_map.data.kitti_files import COLOUR_AGREEMENT_MIN, colour_agreement
+    from mono_map.eval.depth_evaluation import scrambled_colour
+
+    rng = np.random.default_rng(0)
+    scene = rng.random((60, 80)).astype(np.float32)                       # one scene, three channels of it
+    camera = np.stack([scene * 200, scene * 180 + 20 * rng.random((60, 80)), scene * 150 + 30], -1).astype(np.uint8)
+    scrambled = camera.copy()
+    scrambled[..., 1] = rng.permutation(camera[..., 1].ravel()).reshape(60, 80)   # one channel of another image
+    assert colour_agreement(camera) > 0.9 > COLOUR_AGREEMENT_MIN > colour_agreement(scrambled)
+    grey = np.repeat(camera[..., :1], 3, -1)
+    assert colour_agreement(grey) > 0.99
+    assert colour_agreement(np.full((4, 4, 3), 7, np.uint8)) == 1.0              # flat: nothing disagrees
+    assert scrambled_colour([("a", camera, None), ("b", scrambled, None)]) == [("b", colour_agreement(scrambled))]
+    # eval-depth names each such file in one warning line and scores it anyway
+    ckpt = write_tiny_checkpoint(tmp_path / "tiny.pt", beyond=True)
+    assert cli_main(["eval-depth", "--kitti-object", str(kitti_real / "object" / "extra"), "--model", str(ckpt),
+                     "--out", str(tmp_path / "ev"), "--threads", "1"]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if "colour channels do not agree" in line]
+    assert len(err) == 3 and all("k00000" in line and "scored anyway" in line for line in err)
+    ev = next(iter(json.loads((tmp_path / "ev" / "depth_object.json").read_text())["results"].values()))
+    assert ev["n_frames"] == 7
 
 
 def test_bad_inputs_one_line(tmp_path, capsys, kitti_real):

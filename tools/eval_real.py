@@ -1,7 +1,8 @@
 """Depth on real KITTI, every real source its own row, for any list of checkpoints.
 
 Rows: ``object/training`` (the three object frames the project reports), ``object/extra`` (seven more),
-the ten pooled, and the real sequence ``real01`` (every 2nd frame by default) — plus any ``--seq``
+the ten pooled, the pool of those whose colour channels agree (three of object/extra's files have scrambled
+colours: ``scrambled_colour``), and the real sequence ``real01`` (every 2nd frame by default) — plus any ``--seq``
 (a real sequence under another root, e.g. a raw drive). Columns: AbsRel, RMSE, δ1 of the log-space
 expectation, AbsRel after per-frame median scaling (structure, not scale), sparsification AUC of ARE
 ranked by entropy (with the oracle's beside it), and the mean entropy. The metric code is
@@ -40,6 +41,18 @@ def object_source(name: str, folders: list[Path], what: str) -> Source:
     return Source(name, what, lambda: [f for d in folders for f in object_frames(d)])
 
 
+def colour_agreeing_source(name: str, folders: list[Path], what: str) -> Source:
+    """The object frames of ``folders`` whose colour channels agree (``scrambled_colour`` leaves the others out)."""
+    from mono_map.eval.depth_evaluation import object_frames, scrambled_colour
+
+    def load():
+        frames = [f for d in folders for f in object_frames(d)]
+        bad = {n for n, _ in scrambled_colour(frames)}
+        return [f for f in frames if f[0] not in bad]
+
+    return Source(name, what, load)
+
+
 def sequence_source(root: str | Path, seq: str, frames: str, name: str | None = None) -> Source:
     """Frames ``frames`` (the ``--frames`` grammar) of a real sequence, LiDAR projected into image_2."""
     from mono_map.data.kitti import open_sequence
@@ -65,6 +78,8 @@ def real_sources(real_root: str | Path, real01_frames: str = "0:78:2", extra: li
     out = [object_source("object/training", [train], "3 real object frames (the project's first real check)"),
            object_source("object/extra", [more], "7 more real object frames"),
            object_source("object (all 10)", [train, more], "the ten object frames pooled"),
+           colour_agreeing_source("object (colour agrees)", [train, more],
+                                  "the object frames whose colour channels agree, pooled (scrambled files left out)"),
            sequence_source(root / "odometry", "real01", real01_frames, f"real01 ({real01_frames})")]
     for spec in extra:
         parts = spec.split(":", 2)   # FRAMES may hold ':' itself (0:144:4)
@@ -72,6 +87,14 @@ def real_sources(real_root: str | Path, real01_frames: str = "0:78:2", extra: li
             raise MonoMapError(f"--seq: {spec!r}: expected ROOT:NAME:FRAMES (e.g. data/kitti:real02:0:144:4)")
         out.append(sequence_source(parts[0], parts[1], parts[2]))
     return out
+
+
+def scrambled_object_frames(real_root: str | Path) -> list[tuple[str, float]]:
+    """(name, colour agreement) of the real object frames whose colour channels do not agree."""
+    from mono_map.eval.depth_evaluation import object_frames, scrambled_colour
+
+    root = Path(real_root) / "object"
+    return scrambled_colour([f for d in (root / "training", root / "extra") for f in object_frames(d)])
 
 
 def evaluate_sources(models: list[str], sources: list[Source], fast: bool = False) -> list[dict]:
@@ -132,11 +155,16 @@ def main(argv: list[str] | None = None) -> int:
                 raise MonoMapError(f"--only: no source named {args.only}")
         out = prepare_output_dir(args.out)
         rows = evaluate_sources(args.model or ["binary"], sources, fast=args.fast)
+        scrambled = scrambled_object_frames(args.real_root)
     except MonoMapError as exc:
         print(f"eval_real: error: {exc}", file=sys.stderr)
         return 2
     md = markdown(rows)
-    write_json_atomic(out / "eval_real.json", {"args": vars(args), "rows": rows})
+    if scrambled:
+        md += ("\nColour channels that do not agree (smallest correlation; scored in the rows above except "
+               "'object (colour agrees)'): " + ", ".join(f"{n} ({a:.2f})" for n, a in scrambled) + "\n")
+    write_json_atomic(out / "eval_real.json", {"args": vars(args), "rows": rows,
+                                               "scrambled_colour": [list(x) for x in scrambled]})
     write_text_atomic(out / "eval_real.md", md)
     print(md)
     print(f"wrote {out}/eval_real.(json|md)")

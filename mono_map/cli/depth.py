@@ -230,7 +230,7 @@ def _models(args) -> list[str]:
 def run_eval_depth(args) -> int:
     import torch
 
-    from mono_map.eval.depth_evaluation import evaluate_model, markdown_report, object_frames
+    from mono_map.eval.depth_evaluation import evaluate_model, markdown_report, object_frames, scrambled_colour
     from mono_map.depth.inference import DepthPredictor, shipped_names
     from mono_map.io import prepare_output_dir
 
@@ -254,6 +254,9 @@ def run_eval_depth(args) -> int:
         return run_split(args, selection_split, predictors)
     if args.kitti_object:
         frames = object_frames(args.kitti_object)
+        for name, a in scrambled_colour(frames):
+            print(f"eval-depth: warning: {Path(args.kitti_object) / 'image_2' / name}.png: its colour channels do not "
+                  f"agree (smallest correlation {a:.2f}): a scrambled file? scored anyway", file=sys.stderr)
         make = lambda: iter(frames)  # noqa: E731
         n, title, where = len(frames), f"Depth evaluation on real KITTI object frames ({args.kitti_object})", "object"
     elif args.trainset_town:

@@ -157,6 +157,24 @@ def read_image_rgb(path: str | os.PathLike) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
 
 
+COLOUR_AGREEMENT_MIN = 0.5   # a camera's R, G and B agree far above this (real KITTI: >= 0.76; synthetic: higher)
+
+
+def colour_agreement(img: np.ndarray) -> float:
+    """The smallest Pearson correlation between two colour channels of an H×W×3 image (1 = grey-like
+    agreement, 0 = unrelated). A camera's channels see the same scene and correlate strongly (real KITTI images
+    0.76–0.99); a file whose channels were scrambled (three of the shared object/extra frames: 0.24 at best) does
+    not. A flat channel counts as agreeing (1)."""
+    x = np.asarray(img, dtype=np.float32).reshape(-1, 3)[::7]     # every 7th pixel: plenty, and fast
+    x = x - x.mean(axis=0)
+    sd = np.sqrt((x * x).mean(axis=0))
+    out = 1.0
+    for a, b in ((0, 1), (0, 2), (1, 2)):
+        if sd[a] > 1e-6 and sd[b] > 1e-6:
+            out = min(out, float((x[:, a] * x[:, b]).mean() / (sd[a] * sd[b])))
+    return out
+
+
 PNG_GRAY_TYPES = (0, 4)  # IHDR colour types: 0 gray, 2 RGB, 3 palette, 4 gray+alpha, 6 RGBA
 
 

@@ -40,6 +40,20 @@ def object_frames(root: str | Path) -> list[tuple[str, np.ndarray, np.ndarray]]:
     return out
 
 
+def scrambled_colour(frames) -> list[tuple[str, float]]:
+    """(name, :func:`~mono_map.data.kitti_files.colour_agreement`) of the (name, RGB image, …) frames whose colour
+    channels do not agree (below ``COLOUR_AGREEMENT_MIN``): files whose colours were scrambled somewhere between
+    the camera and here. They are scored like any frame; callers say so, and report pools without them."""
+    from mono_map.data.kitti_files import COLOUR_AGREEMENT_MIN, colour_agreement
+
+    out = []
+    for name, image, *_ in frames:
+        a = colour_agreement(image)
+        if a < COLOUR_AGREEMENT_MIN:
+            out.append((name, a))
+    return out
+
+
 def open_town(root: str, town: str):
     """A town of the training cache (``root`` "default" = ``trainset.default_root()``) for reading."""
     from mono_map.data.synth.trainset import default_root, open_trainset
