@@ -155,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
                 raise MonoMapError(f"--only: no source named {args.only}")
         out = prepare_output_dir(args.out)
         rows = evaluate_sources(args.model or ["binary"], sources, fast=args.fast)
-        scrambled = scrambled_object_frames(args.real_root)
+        has_objects = any(s.name.startswith("object") for s in sources)
+        scrambled = scrambled_object_frames(args.real_root) if has_objects else []
     except MonoMapError as exc:
         print(f"eval_real: error: {exc}", file=sys.stderr)
         return 2
