@@ -66,7 +66,7 @@ class FusedConfig:
     trunc_max: float = 1.0
     trunc_behind: float = 3.0
     max_depth: float = 40.0
-    max_spread: float = 0.5
+    max_spread: float = 0.3            # chosen on towns 06 and 07 with the model shipped since 2026-12-05 (docs/fused.md)
     lag: int = 10
     snap_window: float = 1.0
     snap_step: int = 1
