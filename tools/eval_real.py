@@ -89,23 +89,17 @@ def real_sources(real_root: str | Path, real01_frames: str = "0:78:2", extra: li
     return out
 
 
-def scrambled_object_frames(real_root: str | Path) -> list[tuple[str, float]]:
-    """(name, colour agreement) of the real object frames whose colour channels do not agree."""
-    from mono_map.eval.depth_evaluation import object_frames, scrambled_colour
-
-    root = Path(real_root) / "object"
-    return scrambled_colour([f for d in (root / "training", root / "extra") for f in object_frames(d)])
-
-
 def evaluate_sources(models: list[str], sources: list[Source], fast: bool = False) -> list[dict]:
-    """One row per (source, model): the summary numbers of ``evaluate_model`` on that source's frames."""
+    """One row per (source, model): the summary numbers of ``evaluate_model`` on that source's frames, and the
+    source's frames whose colour channels do not agree (``scrambled_colour``: name, agreement)."""
     from mono_map.depth.inference import DepthPredictor
-    from mono_map.eval.depth_evaluation import evaluate_model
+    from mono_map.eval.depth_evaluation import evaluate_model, scrambled_colour
 
     predictors = [(m, DepthPredictor.load(m, fast=fast)) for m in models]   # a bad checkpoint fails first
     rows = []
     for src in sources:
         frames = src.load()
+        scrambled = [[n, a] for n, a in scrambled_colour(frames)]
         for m, p in predictors:
             r = evaluate_model(p, iter(frames), len(frames), desc=f"{src.name} {Path(m).stem}", time_frames=0)
             s = r["sparsification"]
@@ -113,7 +107,7 @@ def evaluate_sources(models: list[str], sources: list[Source], fast: bool = Fals
                          "n_pixels": r["n_pixels"], "abs_rel": r["metrics"]["abs_rel"], "rmse": r["metrics"]["rmse"],
                          "a1": r["metrics"]["a1"], "abs_rel_median_scaled": r["metrics_median_scaled"]["abs_rel"],
                          "auc_are": s["auc"]["are"], "auc_are_oracle": s["auc_oracle"]["are"],
-                         "mean_entropy": r["mean_entropy"], "per_frame": r["per_frame"]})
+                         "mean_entropy": r["mean_entropy"], "per_frame": r["per_frame"], "scrambled_colour": scrambled})
     return rows
 
 
@@ -155,12 +149,11 @@ def main(argv: list[str] | None = None) -> int:
                 raise MonoMapError(f"--only: no source named {args.only}")
         out = prepare_output_dir(args.out)
         rows = evaluate_sources(args.model or ["binary"], sources, fast=args.fast)
-        has_objects = any(s.name.startswith("object") for s in sources)
-        scrambled = scrambled_object_frames(args.real_root) if has_objects else []
     except MonoMapError as exc:
         print(f"eval_real: error: {exc}", file=sys.stderr)
         return 2
     md = markdown(rows)
+    scrambled = sorted({n: a for r in rows for n, a in r["scrambled_colour"]}.items())
     if scrambled:
         md += ("\nColour channels that do not agree (smallest correlation; scored in the rows above except "
                "'object (colour agrees)'): " + ", ".join(f"{n} ({a:.2f})" for n, a in scrambled) + "\n")
