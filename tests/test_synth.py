@@ -327,15 +327,18 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
     return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
-def test_compiled_surface_matches_numpy_on_random_hits(tiny_renderer):
+@pytest.mark.parametrize("detail", [0.0, 0.6])
+def test_compiled_surface_matches_numpy_on_random_hits(tiny_renderer, detail):
     """Every material, random points (including far, negative, grid-aligned and huge coordinates) and normals
-    (roofs, walls, fences at any angle), camera and LiDAR variants: the same bits as materials.surface."""
+    (roofs, walls, fences at any angle), camera and LiDAR variants, vehicles with and without painted details:
+    the same bits as materials.surface."""
+    import dataclasses
     import platform
 
     from mono_map.data.synth import materials as M
 
     kernels = _compiled()
-    town = tiny_renderer.town
+    town = dataclasses.replace(tiny_renderer.town, vehicle_detail=detail)
     rng = np.random.default_rng(5)
     prims = []
     for m in np.unique(town.tri_material):
@@ -494,3 +497,44 @@ def test_a_dead_render_worker_stops_the_run_and_a_new_run_renders_the_rest(tiny_
     assert [p.name for p in files] == [p.name for p in _frame_files(ref)]
     for p in files:
         assert p.read_bytes() == (ref / p.relative_to(seq)).read_bytes(), p
+
+
+def test_vehicle_details_paint_only_the_vehicles_and_leave_older_towns_as_they_were(tiny_renderer):
+    """[cars] detail: at 0 the recipe hash and every hit are what they were; above 0 the camera albedo of vehicle
+    paint changes on the detailed share of the vehicles (at their ends: plates and lights), nothing else does
+    (other materials, the LiDAR's reflectance)."""
+    import dataclasses
+
+    from mono_map.data.synth import materials as M
+    from mono_map.data.synth.randomize import detailed_towns, randomized_recipe, traffic_towns
+
+    recipe = load_recipe("tiny")
+    assert recipe.cars.detail == 0
+    detailed = dataclasses.replace(recipe, cars=dataclasses.replace(recipe.cars, detail=0.5))
+    assert recipe.content_hash() != detailed.content_hash()
+    k, v = traffic_towns(1, kerb_trucks=True)[0], detailed_towns(1)[0]
+    rk, rv = randomized_recipe(k), randomized_recipe(v)
+    assert v.name == "v" + k.name[1:] and rv.cars.detail > 0 and rk.cars.detail == 0
+    assert dataclasses.replace(rv, name=rk.name, cars=rk.cars) == rk          # only the vehicles' paint differs
+    assert "vehicle_detail" not in k.to_dict() and v.to_dict()["vehicle_detail"] is True
+
+    town = tiny_renderer.town
+    rng = np.random.default_rng(3)
+    paint = np.nonzero(town.tri_material == M.CAR_PAINT)[0]
+    other = np.nonzero((town.tri_material != M.CAR_PAINT) & (town.tri_material != M.GROUND))[0]
+    prim = np.concatenate([rng.choice(paint, 3000), rng.choice(other, 1000)]).astype(np.int64)
+    uv = np.full((len(prim), 2), 1 / 3, np.float32)
+    V, F = town.vertices, town.triangles[prim]
+    p = ((V[F[:, 0]] + V[F[:, 1]] + V[F[:, 2]]) / 3).astype(np.float32)
+    o = town.obj_origin[town.tri_object[prim]]
+    f = town.obj_params[town.tri_object[prim], :2]
+    n = np.zeros((len(prim), 3), np.float32)          # the vehicles' rear faces
+    n[:, 0], n[:, 2] = -f[:, 0], -f[:, 1]
+    p[:3000, 1] = (o[:3000, 1] - 0.86).astype(np.float32)   # tail-light height on the paint hits
+    flat = M.surface(town, p, n, prim, uv)
+    rich = M.surface(dataclasses.replace(town, vehicle_detail=1.0), p, n, prim, uv)
+    changed = np.any(flat.albedo != rich.albedo, axis=1)
+    assert changed[:3000].mean() > 0.5 and not changed[3000:].any()
+    assert (rich.albedo[:3000][changed[:3000]] == M.TAIL_LIGHT).all(axis=1).mean() > 0.2   # rear lights: red
+    lidar = [M.surface(dataclasses.replace(town, vehicle_detail=d), p, n, prim, uv, True).lidar_refl for d in (0.0, 1.0)]
+    assert _same(*lidar)

@@ -80,7 +80,7 @@ typedef struct {
     const int32_t *tris; const uint8_t *tri_mat; const int32_t *tri_obj; const uint8_t *tri_junc;
     const float *vert_ls; int64_t n_obj; const float *obj_color; const int32_t *obj_flags;
     const double *obj_origin; const float *obj_params; int64_t seed; double glass_fraction;
-    double left, right, lane, sidewalk;
+    double left, right, lane, sidewalk, vehicle_detail;
 } town_t;
 
 /* barycentric_attr: the ground attributes (l, s) at a hit */
@@ -231,6 +231,57 @@ static void facade(const town_t *T, int64_t prim, const float *P, const float *n
 
 static inline float mean3(const float *c) { return (c[0] + c[1] + c[2]) / 3.0f; }
 
+/* materials._vehicle_detail: painted details of a share of the vehicles on their paint albedo a (camera) */
+static void vehicle_detail(const town_t *T, int64_t prim, const float *P, const float *n, float *a)
+{
+    static const double STRIPE[4][3] = {{0.85, 0.85, 0.82}, {0.80, 0.65, 0.10}, {0.60, 0.08, 0.06}, {0.05, 0.05, 0.05}};
+    const int64_t seed = T->seed, oid = obj_index(T, prim);
+    const uint32_t uo = (uint32_t) T->tri_obj[prim];
+    if (!(hash2(seed_hash(seed + 71), uo, 0u) < F(T->vehicle_detail))) return;
+    const double *o = T->obj_origin + 3 * oid;
+    const float *prm = T->obj_params + 4 * oid;
+    const float fx = prm[0], fz = prm[1], L = prm[2], W = prm[3];
+    const double q0 = (double) P[0] - o[0], q2 = (double) P[2] - o[2];
+    const float al = (float) (q0 * (double) fx + q2 * (double) fz);
+    const float ac = (float) (q0 * (double) fz - q2 * (double) fx);
+    const float h = (float) (o[1] - (double) P[1]);
+    const float nf = n[0] * fx + n[2] * fz;
+    const int end = fabsf(nf) > F(0.7);
+    const int side = fabsf(nf) < F(0.3) && fabsf(n[1]) < F(0.5);
+    const int32_t flags = T->obj_flags[oid];
+    const float base[3] = {a[0], a[1], a[2]};
+    float g = h / F(0.7);
+    g = g < 1.0f ? g : 1.0f;
+    float k = (F(0.72) + F(0.28) * g) * (F(0.9) + F(0.2) * vnoise(seed_hash(seed + 72), al + ac, h, F(1.0 / 0.3)));
+    k = k + F(0.08) * (cell(seed_hash(seed + 73), al + ac, h, F(1.0 / 0.04)) - F(0.5));
+    for (int c = 0; c < 3; ++c) a[c] = base[c] * k;
+    const float h0 = F(0.5) + F(1.5) * hash2(seed_hash(seed + 75), uo, 0u);
+    if (side && hash2(seed_hash(seed + 74), uo, 0u) < F(0.5) && h > h0
+        && h < h0 + (F(0.08) + F(0.25) * hash2(seed_hash(seed + 76), uo, 0u))) {
+        const int pal = (int) floorf(F(4.0) * hash2(seed_hash(seed + 77), uo, 0u));
+        set3(a, F(STRIPE[pal][0]), F(STRIPE[pal][1]), F(STRIPE[pal][2]));
+    }
+    if (side && (flags & (8 | 16)) && np_modf(al, F(1.0) + F(1.5) * hash2(seed_hash(seed + 78), uo, 0u)) < F(0.03))
+        for (int c = 0; c < 3; ++c) a[c] = a[c] * F(0.4);
+    const int glyph = cell(seed_hash(seed + 80), al, h, F(1.0 / 0.09)) > F(0.55)
+                      && cell(seed_hash(seed + 81), al, h, F(1.0 / 0.27)) > F(0.3);
+    if (side && (flags & 16) && hash2(seed_hash(seed + 79), uo, 0u) < F(0.6) && h > F(1.4) && h < F(2.4)
+        && al > F(-0.5) * L + F(1.0) && al < 0.0f && glyph) {
+        const float ink = mean3(base) > F(0.4) ? F(0.08) : F(0.85);
+        set3(a, ink, ink, ink);
+    }
+    if (end && h > F(0.25) && h < F(0.42))
+        for (int c = 0; c < 3; ++c) a[c] = a[c] * F(0.35);
+    const float aac = fabsf(ac);
+    if (end && aac < F(0.26) && h > F(0.42) && h < F(0.54)) set3(a, F(0.85), F(0.85), F(0.80));
+    if (end && aac < F(0.22) && h > F(0.45) && h < F(0.51) && cell(seed_hash(seed + 82), ac, h, F(1.0 / 0.04)) > F(0.5))
+        set3(a, F(0.08), F(0.08), F(0.08));
+    if (end && aac > F(0.5) * W - F(0.32) && h > F(0.75) && h < F(0.98)) {
+        if (nf < 0.0f) set3(a, F(0.55), F(0.06), F(0.05));
+        else set3(a, F(0.80), F(0.80), F(0.78));
+    }
+}
+
 /* materials.surface for n hits; track: the road hits' tyre-track term in syn_road_l's order (camera only) */
 void syn_surface(const town_t *T, int64_t n, const float *p, const float *nrm, const int64_t *prim,
                  const float *uvs, int lidar, const float *track, float *alb, float *mirror, float *refl,
@@ -272,6 +323,7 @@ void syn_surface(const town_t *T, int64_t n, const float *p, const float *nrm, c
             set3(a, c0[0] * k, c0[1] * k, c0[2] * k);
             mir = black ? F(0.10) : F(0.07);
             rf = black ? F(0.012) : F(0.18) + F(0.45) * mean3(a);
+            if (T->vehicle_detail > 0.0) vehicle_detail(T, prim[i], P, N, a);   /* camera only; rf of the paint */
         } else if (m == MAT_CAR_GLASS) {
             set3(a, F(0.03), F(0.035), F(0.04));
             mir = F(0.55); rf = F(0.05); gl = 1;

@@ -29,7 +29,7 @@ class TownArrays(ctypes.Structure):
     _fields_ = [("tris", _P), ("tri_mat", _P), ("tri_obj", _P), ("tri_junc", _P), ("vert_ls", _P), ("n_obj", _I64),
                 ("obj_color", _P), ("obj_flags", _P), ("obj_origin", _P), ("obj_params", _P), ("seed", _I64),
                 ("glass_fraction", ctypes.c_double), ("left", ctypes.c_double), ("right", ctypes.c_double),
-                ("lane", ctypes.c_double), ("sidewalk", ctypes.c_double)]
+                ("lane", ctypes.c_double), ("sidewalk", ctypes.c_double), ("vehicle_detail", ctypes.c_double)]
 
 
 # the town's float arrays must have these types for the kernels to compute what numpy computes (integer arrays
@@ -53,6 +53,7 @@ def town_arrays(town) -> TownArrays:
     left, right = town.road_edges
     t = TownArrays(n_obj=len(keep["obj_color"]), seed=town.seed, glass_fraction=town.glass_fraction, left=left,
                    right=right, lane=town.street.lane_width, sidewalk=town.street.sidewalk_width,
+                   vehicle_detail=float(town.vehicle_detail),
                    **{k: a.ctypes.data for k, a in keep.items()})
     t.keep = keep
     return t

@@ -90,7 +90,7 @@ def surface(town, p: np.ndarray, n: np.ndarray, prim: np.ndarray, uvs: np.ndarra
             oid = town.tri_object[prim[idx]]
             black = (town.obj_flags[oid] & 1) > 0
             c = town.obj_color[oid] * (0.97 + 0.06 * cell_noise(seed + 21, x + y, z, 0.5))[:, None]
-            alb[idx] = c
+            alb[idx] = _vehicle_detail(town, P, n[idx], oid, c) if town.vehicle_detail > 0 else c
             mirror[idx] = np.where(black, 0.10, 0.07)
             lum = c.mean(axis=1)
             refl[idx] = np.where(black, 0.012, 0.18 + 0.45 * lum)
@@ -140,6 +140,59 @@ def road_track(l: np.ndarray, lane: float) -> np.ndarray:
     """Darkening weight (0..2) of the two tyre tracks of a lane at lateral offsets ``l`` (m) of road hits."""
     a = np.abs(l + lane / 2)
     return np.exp(-(((a - lane / 2 + 0.8) / 0.35) ** 2)) + np.exp(-(((a - lane / 2 - 0.8) / 0.35) ** 2))
+
+
+# painted details of vehicles (recipe [cars] detail): side stripe colours, tail light, head light
+STRIPE_COLORS = np.array([[0.85, 0.85, 0.82], [0.80, 0.65, 0.10], [0.60, 0.08, 0.06], [0.05, 0.05, 0.05]], np.float32)
+TAIL_LIGHT = np.array([0.55, 0.06, 0.05], np.float32)
+HEAD_LIGHT = np.array([0.80, 0.80, 0.78], np.float32)
+PLATE = np.array([0.85, 0.85, 0.80], np.float32)
+
+
+def _vehicle_detail(town, P, n, oid, c):
+    """The camera albedo ``c`` (N,3) of vehicle paint with painted details on a share ``town.vehicle_detail`` of
+    the vehicles: grime towards the ground and fine noise everywhere; on the sides a stripe, panel seams (vans,
+    large vehicles) and lettering (large vehicles); at both ends a dark bumper, a number plate with characters
+    and lights (red at the rear). In the vehicle's frame: obj_origin its ground centre, obj_params (forward x,
+    forward z, length, width); the compiled kernel (csrc/synth.c: vehicle_detail) computes the same bits."""
+    seed = town.seed
+    on = hash01(seed + 71, oid, 0) < town.vehicle_detail
+    o = town.obj_origin[oid]
+    prm = town.obj_params[oid]
+    fx, fz, W = prm[:, 0], prm[:, 1], prm[:, 3]
+    q0 = P[:, 0].astype(np.float64) - o[:, 0]
+    q2 = P[:, 2].astype(np.float64) - o[:, 2]
+    al = (q0 * fx.astype(np.float64) + q2 * fz.astype(np.float64)).astype(np.float32)   # along, + = front
+    ac = (q0 * fz.astype(np.float64) - q2 * fx.astype(np.float64)).astype(np.float32)   # across
+    h = (o[:, 1] - P[:, 1].astype(np.float64)).astype(np.float32)                       # above the ground
+    nf = n[:, 0] * fx + n[:, 2] * fz
+    end = on & (np.abs(nf) > 0.7)
+    side = on & (np.abs(nf) < 0.3) & (np.abs(n[:, 1]) < 0.5)
+    flags = town.obj_flags[oid]
+    g = h / 0.7
+    g = np.where(g < 1, g, np.float32(1))
+    k = (0.72 + 0.28 * g) * (0.9 + 0.2 * value_noise(seed + 72, al + ac, h, 0.3))
+    k = k + 0.08 * (cell_noise(seed + 73, al + ac, h, 0.04) - 0.5)
+    out = np.where(on[:, None], c * k[:, None], c)
+    h0 = 0.5 + 1.5 * hash01(seed + 75, oid, 0)
+    stripe = side & (hash01(seed + 74, oid, 0) < 0.5) & (h > h0) & (h < h0 + (0.08 + 0.25 * hash01(seed + 76, oid, 0)))
+    pal = np.floor(4 * hash01(seed + 77, oid, 0)).astype(np.int64)
+    out = np.where(stripe[:, None], STRIPE_COLORS[pal], out)
+    seam = side & ((flags & (8 | 16)) > 0) & (np.mod(al, 1.0 + 1.5 * hash01(seed + 78, oid, 0)) < 0.03)
+    out = np.where(seam[:, None], out * 0.4, out)
+    glyph = (cell_noise(seed + 80, al, h, 0.09) > 0.55) & (cell_noise(seed + 81, al, h, 0.27) > 0.3)
+    letters = side & ((flags & 16) > 0) & (hash01(seed + 79, oid, 0) < 0.6) & (h > 1.4) & (h < 2.4) \
+        & (al > -0.5 * prm[:, 2] + 1.0) & (al < 0) & glyph
+    ink = np.where(c.mean(axis=1) > 0.4, np.float32(0.08), np.float32(0.85))
+    out = np.where(letters[:, None], ink[:, None], out)
+    out = np.where((end & (h > 0.25) & (h < 0.42))[:, None], out * 0.35, out)
+    aac = np.abs(ac)
+    out = np.where((end & (aac < 0.26) & (h > 0.42) & (h < 0.54))[:, None], PLATE, out)
+    chars = end & (aac < 0.22) & (h > 0.45) & (h < 0.51) & (cell_noise(seed + 82, ac, h, 0.04) > 0.5)
+    out = np.where(chars[:, None], np.float32(0.08), out)
+    light = end & (aac > 0.5 * W - 0.32) & (h > 0.75) & (h < 0.98)
+    out = np.where(light[:, None], np.where((nf < 0)[:, None], TAIL_LIGHT, HEAD_LIGHT), out)
+    return out.astype(np.float32)
 
 
 def _face_tangent(n: np.ndarray) -> np.ndarray:

@@ -45,11 +45,17 @@ def add_cars(mb, objs, occ, path, index, rng, recipe, side, counts):
             if clear_of_road(index, pts, 1.8) and occ.free(pts):
                 occ.mark(pts)
                 flags = (BLACK if black else 0) | (VAN if van else 0)
-                oid = objs.add(color, flags)
+                oid = objs.add(color, flags, *vehicle_frame(center, f2, L, W))
                 car_mesh(mb, oid, center, f2, r2, L, W, H, van)
                 counts["cars"] += 1
                 counts["black_cars"] += int(black)
         s += L + gap if place else float(rng.uniform(4.0, 9.0))
+
+
+def vehicle_frame(ground_center, f, L: float, W: float) -> tuple[tuple, tuple]:
+    """A vehicle's (origin, params) in the object table: its ground centre (world m) and (forward x, forward z,
+    length, width) — the frame of its painted details (materials.surface)."""
+    return tuple(float(v) for v in ground_center), (float(f[0]), float(f[2]), float(L), float(W))
 
 
 def car_mesh(mb, oid, ground_center, f, r, L, W, H, van):

@@ -32,12 +32,13 @@ class TownSpec:
     seed: int
     traffic: bool = False       # vehicles in the driving lanes and large vehicles (the "h" family, issue 31)
     kerb_trucks: bool = False   # with traffic: large vehicles parked at the kerbs too (the "k" family)
+    vehicle_detail: bool = False  # vehicles with painted details (lights, plates, stripes, lettering: the "v" family)
 
     def to_dict(self) -> dict:
-        """The spec as stored in the cache; ``traffic``/``kerb_trucks`` only when set, so older towns keep
-        their identity."""
+        """The spec as stored in the cache; ``traffic``/``kerb_trucks``/``vehicle_detail`` only when set, so older
+        towns keep their identity."""
         d = asdict(self)
-        for key in ("traffic", "kerb_trucks"):
+        for key in ("traffic", "kerb_trucks", "vehicle_detail"):
             if not d[key]:
                 d.pop(key)
         return d
@@ -88,7 +89,8 @@ def randomized_recipe(spec: TownSpec) -> Recipe:
                                  width_min=w_min, width_max=w_min + u(4.0, 14.0), depth_min=8.0, depth_max=14.0,
                                  setback_max=u(0.0, 5.0), glass_fraction=u(0.2, 0.9),
                                  storefront_fraction=u(0.0, 0.7), brick_fraction=u(0.0, 0.8)),
-        cars=CarParams(density=u(0.2, 0.95), black_fraction=u(0.05, 0.3), van_fraction=u(0.0, 0.25)),
+        cars=CarParams(density=u(0.2, 0.95), black_fraction=u(0.05, 0.3), van_fraction=u(0.0, 0.25),
+                       detail=DETAILED_SHARE if spec.vehicle_detail else 0.0),
         trees=TreeParams(spacing=u(8.0, 30.0), density=u(0.1, 0.9)),
         props=PropParams(pole_spacing=u(15.0, 45.0), fence_fraction=u(0.0, 0.7)),
         light=LightParams(sun_azimuth_deg=u(-180.0, 180.0), sun_elevation_deg=u(12.0, 70.0),
@@ -196,6 +198,8 @@ def training_towns(seed: int = 2026, frames_per_town: int = 500, stride: int = 2
 
 TRAFFIC_PREFIX = "h"
 KERB_PREFIX = "k"
+DETAIL_PREFIX = "v"
+DETAILED_SHARE = 0.9    # share of a "v" town's vehicles with painted details
 
 
 def traffic_towns(n: int = 4, frames: int = 250, seed: int = 2026, kerb_trucks: bool = False) -> list[TownSpec]:
@@ -209,6 +213,14 @@ def traffic_towns(n: int = 4, frames: int = 250, seed: int = 2026, kerb_trucks: 
         out.append(replace(s, name=prefix + s.name[1:], frames=min(frames, s.frames), seed=s.seed + offset,
                            traffic=True, kerb_trucks=kerb_trucks))
     return out
+
+
+def detailed_towns(n: int = 4, frames: int = 250, seed: int = 2026) -> list[TownSpec]:
+    """The ``k…`` towns of :func:`traffic_towns` (same windows, seeds, layout, traffic, light and camera) with
+    painted details on their vehicles, named ``v…`` (``k01_0a`` → ``v01_0a``): only the vehicles' paint differs,
+    so a model trained on them instead of the ``k`` towns measures that one lever (issue 31)."""
+    return [replace(s, name=DETAIL_PREFIX + s.name[1:], vehicle_detail=True)
+            for s in traffic_towns(n, frames, seed, kerb_trucks=True)]
 
 
 VALIDATION_FIRST_POSE = 1060   # trajectory 09: poses 1060.. are the held-out validation town

@@ -49,6 +49,7 @@ class CarParams:
     density: float = field(default=0.6, metadata=bounded(lo=0, hi=1))  # fraction of the parking strips filled
     black_fraction: float = field(default=0.15, metadata=bounded(lo=0, hi=1))  # black-painted cars/vans the LiDAR barely returns (paper Fig. 3)
     van_fraction: float = field(default=0.12, metadata=bounded(lo=0, hi=1))  # box vans / small trucks among them
+    detail: float = field(default=0.0, metadata=bounded(lo=0, hi=1))  # share of vehicles (parked and in the lanes) with painted details: lights, plates, stripes, lettering, grime (0 = flat paint, as before)
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,8 @@ class Recipe:
             d.pop("traffic")          # the towns before lane traffic existed keep their hash
         elif self.traffic.kerb_large_density == 0:
             d["traffic"].pop("kerb_large_density")    # added after the first towns with traffic: theirs too
+        if self.cars.detail == 0:
+            d["cars"].pop("detail")                   # added later: the towns before it keep their hash
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

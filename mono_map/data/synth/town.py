@@ -38,8 +38,9 @@ class Town:
     vert_ls: np.ndarray         # (V, 2) float32 ground attributes: lateral offset l (m, + = right), arc length s
     obj_color: np.ndarray       # (N, 3) float32 base albedo
     obj_flags: np.ndarray       # (N,) int32 BLACK | BRICK | STOREFRONT | VAN | LARGE
-    obj_origin: np.ndarray      # (N, 3) float64 facade texture origin (a footprint corner at ground level)
-    obj_params: np.ndarray      # (N, 4) float32 facade: window spacing, floor height, window width, window height
+    obj_origin: np.ndarray      # (N, 3) float64 facade texture origin (a footprint corner at ground level); vehicle: ground centre
+    obj_params: np.ndarray      # (N, 4) float32 facade: window spacing, floor height, window width, window height;
+    #                             vehicle: forward direction (x, z), length, width (m)
     street: object              # recipe StreetParams
     seed: int
     glass_fraction: float = 0.6 # share of facade windows that are reflective glass (others curtained)
@@ -47,6 +48,7 @@ class Town:
     lane_vehicles: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 2)))  # (N, 4, 2) x-z footprint
     # corners (world, m) of the vehicles standing in the driving lanes (recipe [traffic]); see traffic.clear_frames
     lane_vehicle_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))  # (N,) their object ids
+    vehicle_detail: float = 0.0 # share of vehicles with painted details (recipe [cars] detail)
 
     @property
     def road_edges(self) -> tuple[float, float]:
@@ -98,7 +100,7 @@ def build_town(recipe) -> Town:
         obj_origin=np.array(objs.origin, np.float64).reshape(n, 3),
         obj_params=np.array(objs.params, np.float32).reshape(n, 4),
         street=st, seed=recipe.seed, glass_fraction=recipe.buildings.glass_fraction, stats=counts,
-        lane_vehicles=lane_vehicles, lane_vehicle_ids=lane_ids,
+        lane_vehicles=lane_vehicles, lane_vehicle_ids=lane_ids, vehicle_detail=recipe.cars.detail,
     )
 
 

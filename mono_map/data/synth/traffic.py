@@ -24,7 +24,7 @@ import numpy as np
 from mono_map.data.synth import materials as M
 from mono_map.data.synth.meshes import box, cylinder
 from mono_map.data.synth.placement import BLACK, LARGE, VAN, box_axes, clear_of_road, footprint_samples, frame_at
-from mono_map.data.synth.props import CAR_COLORS, BLACK_PAINT, car_mesh
+from mono_map.data.synth.props import CAR_COLORS, BLACK_PAINT, car_mesh, vehicle_frame
 from mono_map.data.synth.recipe import TrafficParams
 
 LANE_CLEARANCE = 1.5     # metres from any road-path point to an adjacent-lane vehicle's footprint
@@ -153,7 +153,7 @@ def _place(mb, objs, occ, path, index, s_c, lat, yaw, reverse, v, clearance):
         return None
     occ.mark(pts)
     flags = (BLACK if v["black"] else 0) | (VAN if v["kind"] == "van" else 0) | (LARGE if v["kind"] in LARGE_KINDS else 0)
-    oid = objs.add(v["color"], flags)
+    oid = objs.add(v["color"], flags, *vehicle_frame(center, f2, v["L"], v["W"]))
     if v["kind"] in LARGE_KINDS:
         large_vehicle_mesh(mb, oid, center, f2, r2, v["L"], v["W"], v["H"], v["kind"])
     else:
