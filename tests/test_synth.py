@@ -517,6 +517,8 @@ def test_vehicle_details_paint_only_the_vehicles_and_leave_older_towns_as_they_w
     assert v.name == "v" + k.name[1:] and rv.cars.detail > 0 and rk.cars.detail == 0
     assert dataclasses.replace(rv, name=rk.name, cars=rk.cars) == rk          # only the vehicles' paint differs
     assert "vehicle_detail" not in k.to_dict() and v.to_dict()["vehicle_detail"] is True
+    h, d = traffic_towns(1)[0], detailed_towns(1, kerb_trucks=False)[0]
+    assert d.name == "d" + h.name[1:] and d.seed == h.seed and d.vehicle_detail and not d.kerb_trucks
 
     town = tiny_renderer.town
     rng = np.random.default_rng(3)

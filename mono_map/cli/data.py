@@ -44,6 +44,9 @@ def register(subparsers) -> None:
     p.add_argument("--detailed-vehicles", type=int, default=0,
                    help="also the first N kerb-truck towns with painted details on their vehicles (lights, plates, "
                         "stripes, lettering, grime: v01_0a, ...; default 0)")
+    p.add_argument("--detailed-traffic", type=int, default=0,
+                   help="also the first N lane-traffic towns with painted details on their vehicles (d01_0a, ...; "
+                        "default 0)")
     p.set_defaults(func=run_render_trainset)
 
 
@@ -107,13 +110,16 @@ def run_render_trainset(args: argparse.Namespace) -> int:
         raise MonoMapError(f"--kerb-trucks: must be 0 (none) to {len(specs)}, got {args.kerb_trucks}")
     if not 0 <= args.detailed_vehicles <= len(specs):
         raise MonoMapError(f"--detailed-vehicles: must be 0 (none) to {len(specs)}, got {args.detailed_vehicles}")
+    if not 0 <= args.detailed_traffic <= len(specs):
+        raise MonoMapError(f"--detailed-traffic: must be 0 (none) to {len(specs)}, got {args.detailed_traffic}")
     root = Path(args.root).expanduser() if args.root else default_root()
     if root.exists() and not root.is_dir():
         raise MonoMapError(f"--root: {root}: not a directory")
     if root.is_dir() and not os.access(root, os.W_OK):
         raise MonoMapError(f"--root: {root}: not writable")
     specs = [validation_town()] + (specs[:args.towns] if args.towns else specs) + traffic_towns(args.traffic) \
-        + traffic_towns(args.kerb_trucks, kerb_trucks=True) + detailed_towns(args.detailed_vehicles)
+        + traffic_towns(args.kerb_trucks, kerb_trucks=True) + detailed_towns(args.detailed_vehicles) \
+        + detailed_towns(args.detailed_traffic, kerb_trucks=False)
     print(f"rendering {len(specs)} towns ({sum(s.frames for s in specs)} frames) into {root}", file=sys.stderr)
     out = render_trainset(root, specs, workers=args.workers, log=lambda m: print(m, file=sys.stderr, flush=True))
     print(f"done: {out['frames_rendered']} frames in {out['seconds'] / 60:.1f} min", file=sys.stderr)

@@ -198,7 +198,8 @@ def training_towns(seed: int = 2026, frames_per_town: int = 500, stride: int = 2
 
 TRAFFIC_PREFIX = "h"
 KERB_PREFIX = "k"
-DETAIL_PREFIX = "v"
+DETAIL_PREFIX = "v"            # the k towns with painted vehicle details
+DETAIL_TRAFFIC_PREFIX = "d"    # the h towns with painted vehicle details
 DETAILED_SHARE = 0.9    # share of a "v" town's vehicles with painted details
 
 
@@ -215,12 +216,14 @@ def traffic_towns(n: int = 4, frames: int = 250, seed: int = 2026, kerb_trucks: 
     return out
 
 
-def detailed_towns(n: int = 4, frames: int = 250, seed: int = 2026) -> list[TownSpec]:
-    """The ``k…`` towns of :func:`traffic_towns` (same windows, seeds, layout, traffic, light and camera) with
-    painted details on their vehicles, named ``v…`` (``k01_0a`` → ``v01_0a``): only the vehicles' paint differs,
-    so a model trained on them instead of the ``k`` towns measures that one lever (issue 31)."""
-    return [replace(s, name=DETAIL_PREFIX + s.name[1:], vehicle_detail=True)
-            for s in traffic_towns(n, frames, seed, kerb_trucks=True)]
+def detailed_towns(n: int = 4, frames: int = 250, seed: int = 2026, kerb_trucks: bool = True) -> list[TownSpec]:
+    """The towns of :func:`traffic_towns` (same windows, seeds, layout, traffic, light and camera) with painted
+    details on their vehicles: the ``k…`` towns as ``v…`` (``k01_0a`` → ``v01_0a``), or with ``kerb_trucks``
+    False the ``h…`` towns as ``d…``. Only the vehicles' paint differs, so a model trained on them instead of
+    their flat-painted twins measures that one lever (issue 31)."""
+    prefix = DETAIL_PREFIX if kerb_trucks else DETAIL_TRAFFIC_PREFIX
+    return [replace(s, name=prefix + s.name[1:], vehicle_detail=True)
+            for s in traffic_towns(n, frames, seed, kerb_trucks=kerb_trucks)]
 
 
 VALIDATION_FIRST_POSE = 1060   # trajectory 09: poses 1060.. are the held-out validation town
