@@ -506,19 +506,24 @@ def test_vehicle_details_paint_only_the_vehicles_and_leave_older_towns_as_they_w
     import dataclasses
 
     from mono_map.data.synth import materials as M
-    from mono_map.data.synth.randomize import detailed_towns, randomized_recipe, traffic_towns
+    from mono_map.data.synth.randomize import detailed_towns, randomized_recipe, traffic_towns, training_towns
 
     recipe = load_recipe("tiny")
     assert recipe.cars.detail == 0
     detailed = dataclasses.replace(recipe, cars=dataclasses.replace(recipe.cars, detail=0.5))
     assert recipe.content_hash() != detailed.content_hash()
-    k, v = traffic_towns(1, kerb_trucks=True)[0], detailed_towns(1)[0]
+    k = traffic_towns(1, kerb_trucks=True)[0]
+    v = detailed_towns([k])[0]
     rk, rv = randomized_recipe(k), randomized_recipe(v)
     assert v.name == "v" + k.name[1:] and rv.cars.detail > 0 and rk.cars.detail == 0
     assert dataclasses.replace(rv, name=rk.name, cars=rk.cars) == rk          # only the vehicles' paint differs
     assert "vehicle_detail" not in k.to_dict() and v.to_dict()["vehicle_detail"] is True
-    h, d = traffic_towns(1)[0], detailed_towns(1, kerb_trucks=False)[0]
+    h, t = traffic_towns(1)[0], training_towns()[0]
+    d, q = detailed_towns([h, t])
     assert d.name == "d" + h.name[1:] and d.seed == h.seed and d.vehicle_detail and not d.kerb_trucks
+    assert q.name == "p" + t.name[1:] and q.seed == t.seed and q.vehicle_detail and not q.traffic
+    with pytest.raises(ValueError, match="no detailed family"):
+        detailed_towns([v])
 
     town = tiny_renderer.town
     rng = np.random.default_rng(3)

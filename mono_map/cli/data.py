@@ -41,12 +41,9 @@ def register(subparsers) -> None:
     p.add_argument("--kerb-trucks", type=int, default=0,
                    help="also the first N towns with lane traffic and large vehicles parked at the kerbs too "
                         "(k01_0a, ...; default 0)")
-    p.add_argument("--detailed-vehicles", type=int, default=0,
-                   help="also the first N kerb-truck towns with painted details on their vehicles (lights, plates, "
-                        "stripes, lettering, grime: v01_0a, ...; default 0)")
-    p.add_argument("--detailed-traffic", type=int, default=0,
-                   help="also the first N lane-traffic towns with painted details on their vehicles (d01_0a, ...; "
-                        "default 0)")
+    p.add_argument("--detailed", action="store_true",
+                   help="also the twins of the training, traffic and kerb-truck towns asked for with painted details on "
+                        "their vehicles (lights, plates, stripes, lettering, grime): p01_0a, d01_0a, v01_0a, ...")
     p.set_defaults(func=run_render_trainset)
 
 
@@ -108,18 +105,14 @@ def run_render_trainset(args: argparse.Namespace) -> int:
         raise MonoMapError(f"--traffic: must be 0 (none) to {len(specs)}, got {args.traffic}")
     if not 0 <= args.kerb_trucks <= len(specs):
         raise MonoMapError(f"--kerb-trucks: must be 0 (none) to {len(specs)}, got {args.kerb_trucks}")
-    if not 0 <= args.detailed_vehicles <= len(specs):
-        raise MonoMapError(f"--detailed-vehicles: must be 0 (none) to {len(specs)}, got {args.detailed_vehicles}")
-    if not 0 <= args.detailed_traffic <= len(specs):
-        raise MonoMapError(f"--detailed-traffic: must be 0 (none) to {len(specs)}, got {args.detailed_traffic}")
     root = Path(args.root).expanduser() if args.root else default_root()
     if root.exists() and not root.is_dir():
         raise MonoMapError(f"--root: {root}: not a directory")
     if root.is_dir() and not os.access(root, os.W_OK):
         raise MonoMapError(f"--root: {root}: not writable")
-    specs = [validation_town()] + (specs[:args.towns] if args.towns else specs) + traffic_towns(args.traffic) \
-        + traffic_towns(args.kerb_trucks, kerb_trucks=True) + detailed_towns(args.detailed_vehicles) \
-        + detailed_towns(args.detailed_traffic, kerb_trucks=False)
+    towns = (specs[:args.towns] if args.towns else specs) + traffic_towns(args.traffic) \
+        + traffic_towns(args.kerb_trucks, kerb_trucks=True)
+    specs = [validation_town()] + towns + (detailed_towns(towns) if args.detailed else [])
     print(f"rendering {len(specs)} towns ({sum(s.frames for s in specs)} frames) into {root}", file=sys.stderr)
     out = render_trainset(root, specs, workers=args.workers, log=lambda m: print(m, file=sys.stderr, flush=True))
     print(f"done: {out['frames_rendered']} frames in {out['seconds'] / 60:.1f} min", file=sys.stderr)

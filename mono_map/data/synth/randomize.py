@@ -198,8 +198,7 @@ def training_towns(seed: int = 2026, frames_per_town: int = 500, stride: int = 2
 
 TRAFFIC_PREFIX = "h"
 KERB_PREFIX = "k"
-DETAIL_PREFIX = "v"            # the k towns with painted vehicle details
-DETAIL_TRAFFIC_PREFIX = "d"    # the h towns with painted vehicle details
+DETAIL_PREFIXES = {"t": "p", TRAFFIC_PREFIX: "d", KERB_PREFIX: "v"}   # a family -> its twins with painted vehicles
 DETAILED_SHARE = 0.9    # share of a "v" town's vehicles with painted details
 
 
@@ -216,14 +215,17 @@ def traffic_towns(n: int = 4, frames: int = 250, seed: int = 2026, kerb_trucks: 
     return out
 
 
-def detailed_towns(n: int = 4, frames: int = 250, seed: int = 2026, kerb_trucks: bool = True) -> list[TownSpec]:
-    """The towns of :func:`traffic_towns` (same windows, seeds, layout, traffic, light and camera) with painted
-    details on their vehicles: the ``k…`` towns as ``v…`` (``k01_0a`` → ``v01_0a``), or with ``kerb_trucks``
-    False the ``h…`` towns as ``d…``. Only the vehicles' paint differs, so a model trained on them instead of
-    their flat-painted twins measures that one lever (issue 31)."""
-    prefix = DETAIL_PREFIX if kerb_trucks else DETAIL_TRAFFIC_PREFIX
-    return [replace(s, name=prefix + s.name[1:], vehicle_detail=True)
-            for s in traffic_towns(n, frames, seed, kerb_trucks=kerb_trucks)]
+def detailed_towns(specs: list[TownSpec]) -> list[TownSpec]:
+    """Twins of the towns ``specs`` (same windows, seeds, layout, traffic, light and camera) with painted details on
+    their vehicles, renamed by family: ``t…`` → ``p…``, ``h…`` → ``d…``, ``k…`` → ``v…`` (``k01_0a`` →
+    ``v01_0a``). Only the vehicles' paint differs, so a model trained on them instead of their flat-painted twins
+    measures that one lever (issue 31)."""
+    out = []
+    for s in specs:
+        if s.name[0] not in DETAIL_PREFIXES:
+            raise ValueError(f"{s.name}: no detailed family for it (families: {', '.join(DETAIL_PREFIXES)})")
+        out.append(replace(s, name=DETAIL_PREFIXES[s.name[0]] + s.name[1:], vehicle_detail=True))
+    return out
 
 
 VALIDATION_FIRST_POSE = 1060   # trajectory 09: poses 1060.. are the held-out validation town
