@@ -162,8 +162,8 @@ def _vehicle_detail(town, P, n, oid, c):
     fx, fz, W = prm[:, 0], prm[:, 1], prm[:, 3]
     q0 = P[:, 0].astype(np.float64) - o[:, 0]
     q2 = P[:, 2].astype(np.float64) - o[:, 2]
-    al = (q0 * fx.astype(np.float64) + q2 * fz.astype(np.float64)).astype(np.float32)   # along, + = front
-    ac = (q0 * fz.astype(np.float64) - q2 * fx.astype(np.float64)).astype(np.float32)   # across
+    al = (q0 * fx + q2 * fz).astype(np.float32)   # along, + = front (float64 like the kernel's, then float32)
+    ac = (q0 * fz - q2 * fx).astype(np.float32)   # across
     h = (o[:, 1] - P[:, 1].astype(np.float64)).astype(np.float32)                       # above the ground
     nf = n[:, 0] * fx + n[:, 2] * fz
     end = on & (np.abs(nf) > 0.7)

@@ -32,7 +32,7 @@ class TownSpec:
     seed: int
     traffic: bool = False       # vehicles in the driving lanes and large vehicles (the "h" family, issue 31)
     kerb_trucks: bool = False   # with traffic: large vehicles parked at the kerbs too (the "k" family)
-    vehicle_detail: bool = False  # vehicles with painted details (lights, plates, stripes, lettering: the "v" family)
+    vehicle_detail: bool = False  # vehicles with painted details: the twins of the t, h, k towns (p, d, v families)
 
     def to_dict(self) -> dict:
         """The spec as stored in the cache; ``traffic``/``kerb_trucks``/``vehicle_detail`` only when set, so older
@@ -199,7 +199,7 @@ def training_towns(seed: int = 2026, frames_per_town: int = 500, stride: int = 2
 TRAFFIC_PREFIX = "h"
 KERB_PREFIX = "k"
 DETAIL_PREFIXES = {"t": "p", TRAFFIC_PREFIX: "d", KERB_PREFIX: "v"}   # a family -> its twins with painted vehicles
-DETAILED_SHARE = 0.9    # share of a "v" town's vehicles with painted details
+DETAILED_SHARE = 0.9    # share of a detailed twin's (p, d, v) vehicles with painted details
 
 
 def traffic_towns(n: int = 4, frames: int = 250, seed: int = 2026, kerb_trucks: bool = False) -> list[TownSpec]:
