@@ -54,14 +54,15 @@ def main(argv=None) -> int:
     p.add_argument("--scale", default=str(d.scale), help="the cost's grid: 1/scale of the image (comma list)")
     p.add_argument("--max-baseline", default=f"{d.max_baseline:g}")
     p.add_argument("--allow-00", action="store_true")
+    p.add_argument("--stereo", default="0", help="1: the frame's right image (image_3) is one more source (comma list)")
     p.add_argument("--gt", choices=("dense", "lidar"), default="dense",
                    help="ground truth: dense depth_2 (synthetic) or the projected LiDAR (any sequence with velodyne)")
     args = p.parse_args(argv)
     grid = [MultiviewConfig(sources=int(s), temperature=float(t), prior_power=float(a), min_baseline=float(b),
-                            window=int(wn), scale=int(sc), max_baseline=float(mb))
+                            window=int(wn), scale=int(sc), max_baseline=float(mb), stereo=bool(int(st)))
             for s in args.sources.split(",") for t in args.temperature.split(",") for a in args.prior_power.split(",")
             for b in args.min_baseline.split(",") for wn in args.window.split(",") for sc in args.scale.split(",")
-            for mb in args.max_baseline.split(",")]
+            for mb in args.max_baseline.split(",") for st in args.stereo.split(",")]
     if args.seq == "00" and (not args.allow_00 or len(grid) > 1):
         raise SystemExit("choose settings on a training town, never on 00 (--allow-00 measures one setting)")
     seq = open_sequence(args.data_root, args.seq)
@@ -97,7 +98,7 @@ def main(argv=None) -> int:
     for k, cfg in enumerate(grid):
         a, b, f = summary(acc[k])
         print(f"| posterior, {cfg.sources} sources ≥ {cfg.min_baseline:g} m, τ {cfg.temperature:g}, a {cfg.prior_power:g}, "
-              f"window {cfg.window}, scale {cfg.scale}, max baseline {cfg.max_baseline:g} m | {a:.3f} | "
+              f"window {cfg.window}, scale {cfg.scale}, max baseline {cfg.max_baseline:g} m{', + image_3' if cfg.stereo else ''} | {a:.3f} | "
               f"{b:.3f} | {f:.3f} | {100 * np.mean(informative[k]):.0f} % | {secs[k] / len(frames):.2f} |")
     return 0
 

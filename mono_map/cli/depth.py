@@ -60,7 +60,7 @@ def register(subparsers) -> None:
     p.add_argument("--fast", action="store_true", help="distribution statistics at the decoder's stride 4, then up-sampled")
     p.set_defaults(func=run_eval_depth)
 
-    from mono_map.depth.adapt import HINT_LOSSES, AdaptConfig
+    from mono_map.depth.adapt import HINT_LOSSES, STEREO_MODES, AdaptConfig
 
     d = AdaptConfig()
     p = subparsers.add_parser(
@@ -102,6 +102,9 @@ def register(subparsers) -> None:
     p.add_argument("--hint-contrast", type=float, default=d.hint_contrast,
                    help="a hint only where the sweep's mean cost exceeds its best plane's by more than this "
                         f"(SSIM+L1 units; default {d.hint_contrast:g}; 0 = every pixel the sweep is informative at)")
+    p.add_argument("--stereo", choices=STEREO_MODES, default=d.stereo,
+                   help="each frame's right colour camera (image_3, KITTI's stereo partner) as one more source: auto = "
+                        f"if every frame has it, on = required, off = never (default {d.stereo})")
     p.add_argument("--replay-root", default=None, help="data root of --replay-seq (default: --data-root)")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"steps between held-out photometric checks (the stopping rule; default {d.eval_every})")
@@ -368,7 +371,7 @@ def run_adapt(args) -> int:
                       max_baseline=args.max_baseline, max_offset=args.max_offset, per_side=args.per_side,
                       loss_scale=args.loss_scale, trim=args.trim, replay=args.replay, replay_seq=args.replay_seq,
                       train_encoder=not args.decoder_only, eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision(),
-                      hints=args.hints, hint_loss=args.hint_loss, hint_contrast=args.hint_contrast)
+                      hints=args.hints, hint_loss=args.hint_loss, hint_contrast=args.hint_contrast, stereo=args.stereo)
     cfg.validate()
     selection = parse_frames(args.frames) if args.frames is not None else None   # None: adapt's default
     torch.set_num_threads(args.threads)

@@ -132,6 +132,8 @@ FUSED_OPTIONS = (
     ("multiview", "neighbouring frames (0 = off, 1, 2) whose images sharpen each frame's depth distribution "
                   "(plane-sweep posterior, depth/multiview.py)"),
     ("multiview_temperature", "temperature of the multi-view photometric likelihood"),
+    ("stereo", "1: the frame's right colour camera (image_3, KITTI's stereo partner) is one more source of the "
+               "multi-view posterior (the sequence needs image_3); 0: the left images only"),
     ("subpixel", "1: voxels read the full-resolution depth bilinearly; 0: the nearest ray-grid pixel"),
     ("mode", "1: each pixel's surface moves from its expected depth to its distribution's mode; 0: it stays"),
 )

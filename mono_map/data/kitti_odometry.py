@@ -39,16 +39,20 @@ class Calibration:
     K2: 3×3 intrinsics of image_2 (pixels).
     T_cam0_velo: Tr, velodyne → cam0.  T_cam2_cam0: [I | t2] with t2 = K2⁻¹·P2[:, 3]
     (≈ +0.06 m along x).  T_cam2_velo = T_cam2_cam0 · T_cam0_velo.
+    P3: 3×4 rectified projection of image_3, the right colour camera (≈ −0.48 m along x from cam0), or None.
     """
 
     P2: np.ndarray
     T_cam0_velo: np.ndarray
+    P3: np.ndarray | None = None
 
     @classmethod
     def from_file(cls, path: str | os.PathLike) -> "Calibration":
         data = read_calib_file(path)
+        P3 = data.get("P3")
         return cls(P2=data["P2"].reshape(3, 4), T_cam0_velo=geometry.make_pose(
-            data["Tr"].reshape(3, 4)[:, :3], data["Tr"].reshape(3, 4)[:, 3]))
+            data["Tr"].reshape(3, 4)[:, :3], data["Tr"].reshape(3, 4)[:, 3]),
+            P3=P3.reshape(3, 4) if P3 is not None and P3.size == 12 else None)
 
     @property
     def K2(self) -> np.ndarray:
@@ -61,6 +65,11 @@ class Calibration:
     @property
     def T_cam2_velo(self) -> np.ndarray:
         return self.T_cam2_cam0 @ self.T_cam0_velo
+
+    @property
+    def T_cam3_cam0(self) -> np.ndarray | None:
+        """[I | t3] of the right colour camera (t3 = K3⁻¹·P3[:, 3]), None without P3."""
+        return None if self.P3 is None else geometry.T_cam_cam0_from_projection(self.P3)
 
 
 def read_object_calibration(path: str | os.PathLike) -> Calibration:
@@ -164,9 +173,33 @@ class KittiSequence:
         """Pose of image_2 in the world (first cam0 frame): T_world_cam0 · inv(T_cam2_cam0)."""
         return self.T_world_cam0(i) @ geometry.pose_inverse(self.calib.T_cam2_cam0)
 
+    def T_world_cam3(self, i: int) -> np.ndarray:
+        """Pose of image_3 (the right colour camera) in the world: T_world_cam0 · inv(T_cam3_cam0)."""
+        if self.calib.T_cam3_cam0 is None:
+            raise MonoMapError(f"{self.path}: the calibration has no P3 (right colour camera)")
+        return self.T_world_cam0(i) @ geometry.pose_inverse(self.calib.T_cam3_cam0)
+
+    @property
+    def right_dir(self) -> Path:
+        """Where the right colour camera's images are (odometry layout: ``image_3/``)."""
+        return self.path / "image_3"
+
+    def has_right(self, indices) -> bool:
+        """True if frames ``indices`` all have a right image (and the calibration its P3 with image_2's K)."""
+        P2, P3 = self.calib.P2, self.calib.P3
+        if P3 is None or not np.allclose(P3[:, :3], P2[:, :3], rtol=1e-6, atol=1e-6):
+            return False
+        return all((self.right_dir / self.image_files[self._check_index(i)].name).is_file() for i in indices)
+
+    def image_right(self, i: int) -> np.ndarray:
+        """The right colour camera's image of frame i (image_3; same size and K as image_2): H×W×3 uint8 RGB."""
+        return self._read_image(self.right_dir / self.image_files[self._check_index(i)].name)
+
     def image(self, i: int) -> np.ndarray:
         """image_2 of frame i: H×W×3 uint8 RGB."""
-        path = self.image_files[self._check_index(i)]
+        return self._read_image(self.image_files[self._check_index(i)])
+
+    def _read_image(self, path: Path) -> np.ndarray:
         img = read_image_rgb(path)
         if img.shape[:2] != self.image_size:
             raise MonoMapError(f"{path}: image is {img.shape[1]}×{img.shape[0]}, "

@@ -54,6 +54,7 @@ class RawCalibration:
     P_rect_02: 3×4 rectified projection of image_02 (in rectified cam0 coordinates).
     R_rect_00: 4×4 rectifying rotation of cam0.  T_cam0unrect_velo: velodyne → unrectified cam0.
     T_velo_imu: IMU → velodyne.  image_size: (H, W) from S_rect_02.
+    P_rect_03: 3×4 rectified projection of image_03 (the right colour camera), None if the file has none.
     """
 
     P_rect_02: np.ndarray
@@ -61,6 +62,7 @@ class RawCalibration:
     T_cam0unrect_velo: np.ndarray
     T_velo_imu: np.ndarray
     image_size: tuple[int, int]
+    P_rect_03: np.ndarray | None = None
 
     @property
     def T_cam0_velo(self) -> np.ndarray:
@@ -110,7 +112,9 @@ def raw_calibration(cam_to_cam: dict[str, np.ndarray], velo_to_cam: dict[str, np
     T_vc = _entry(velo_to_cam, "T", 3, p_vc)
     R_iv = _rotation(_entry(imu_to_velo, "R", 9, p_iv), "R (IMU → velodyne)", p_iv)
     T_iv = _entry(imu_to_velo, "T", 3, p_iv)
-    return RawCalibration(P_rect_02=P, R_rect_00=geometry.make_pose(R_rect),
+    P3 = cam_to_cam.get("P_rect_03")   # the right colour camera (optional: image_03 is optional)
+    P3 = P3.reshape(3, 4) if P3 is not None and P3.size == 12 else None
+    return RawCalibration(P_rect_02=P, R_rect_00=geometry.make_pose(R_rect), P_rect_03=P3,
                           T_cam0unrect_velo=geometry.make_pose(R_vc, T_vc), T_velo_imu=geometry.make_pose(R_iv, T_iv),
                           image_size=(int(size[1]), int(size[0])))
 

@@ -46,7 +46,7 @@ class KittiRawSequence(KittiSequence):
                 f"{date}/{name}/{{image_02,velodyne_points,oxts}} and {date}/calib_*.txt under {self.root})")
         self.raw_calib = read_raw_calibration(self.path.parent)
         rc = self.raw_calib
-        self.calib = Calibration(P2=rc.P_rect_02, T_cam0_velo=rc.T_cam0_velo)
+        self.calib = Calibration(P2=rc.P_rect_02, T_cam0_velo=rc.T_cam0_velo, P3=rc.P_rect_03)
         self.image_files = listing(self.path / "image_02" / "data", ".png")
         self.velodyne_files = listing(self.path / "velodyne_points" / "data", ".bin")
         oxts_files = listing(self.path / "oxts" / "data", ".txt")
@@ -77,6 +77,11 @@ class KittiRawSequence(KittiSequence):
 
     def __repr__(self) -> str:
         return f"KittiRawSequence({str(self.root)!r}, {self.name!r}, frames={len(self)})"
+
+    @property
+    def right_dir(self) -> Path:
+        """The right colour camera's images: ``image_03/data/``."""
+        return self.path / "image_03" / "data"
 
     @property
     def depth_dir(self) -> Path:

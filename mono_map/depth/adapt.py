@@ -31,7 +31,8 @@ import numpy as np
 from mono_map.depth.sources import choose_sources
 from mono_map.errors import MonoMapError
 
-HINT_LOSSES = ("log", "head")   # Depth Hints' term: on the expected depth (log L1) or the head's own loss on the bins
+HINT_LOSSES = ("log", "head")
+STEREO_MODES = ("auto", "on", "off")   # the right colour camera (image_3) as a source: if every frame has it / required / never   # Depth Hints' term: on the expected depth (log L1) or the head's own loss on the bins
 
 ADAPT_VERSION = 1
 DEFAULT_FRAMES = 500   # frames adapted on unless told (build's default too); a synthetic sequence is rendered that far
@@ -66,6 +67,9 @@ class AdaptConfig:
     hints: float = 0.0
     hint_loss: str = "log"           # "log": |log d − log hint| on the expected depth; "head": the head's training loss
     hint_contrast: float = 0.1       # a hint only where the sweep's mean cost exceeds its best by more than this
+    # the same frame's right colour camera (image_3) as one more source of every target (monodepth2's "MS"): a
+    # 0.54 m baseline at the same instant, so it also sees a stopped car's frames and things moving with the car
+    stereo: str = "auto"
 
     def validate(self) -> None:
         checks = [(self.steps >= 1, "--steps", f"must be >= 1, got {self.steps}"),
@@ -87,7 +91,8 @@ class AdaptConfig:
                    f"must be a number >= 0 (0 = off), got {self.hints}"),
                   (np.isfinite(self.hint_contrast) and self.hint_contrast >= 0, "--hint-contrast",
                    f"must be a number >= 0, got {self.hint_contrast}"),
-                  (self.hint_loss in HINT_LOSSES, "--hint-loss", f"must be one of {', '.join(HINT_LOSSES)}, got {self.hint_loss}")]
+                  (self.hint_loss in HINT_LOSSES, "--hint-loss", f"must be one of {', '.join(HINT_LOSSES)}, got {self.hint_loss}"),
+                  (self.stereo in STEREO_MODES, "--stereo", f"must be one of {', '.join(STEREO_MODES)}, got {self.stereo}")]
         for ok, option, why in checks:
             if not ok:
                 raise MonoMapError(f"{option}: {why}")
@@ -96,6 +101,7 @@ class AdaptConfig:
         """Everything but ``steps``: what a longer run shares with a shorter one."""
         d = asdict(self)
         d.pop("steps")
+        d.pop("stereo")      # the run records whether it used image_3 (``run_key``), not the mode asked for
         if not self.hints:   # off: the key of a run from before hints existed (its checkpoint name stays valid)
             for k in ("hints", "hint_loss", "hint_contrast"):
                 d.pop(k)
@@ -114,30 +120,54 @@ def held_out(targets: list[int]) -> list[int]:
 @dataclass
 class SequenceFrames:
     """The frames of an adaptation in the network's input size: images (N,H,W,3) uint8, K (3,3) of these
-    images, poses T_world_cam2 (N,4,4), the content size (fh, fw) (the rest is padding), frame indices."""
+    images, poses T_world_cam2 (N,4,4), the content size (fh, fw) (the rest is padding), frame indices.
+    With the right camera (``stereo``): images and poses (T_world_cam3) of frame j's image_3 at row N + j."""
 
     images: np.ndarray
     K: np.ndarray
     poses: np.ndarray
     content: tuple[int, int]
     indices: list[int]
+    stereo: bool = False
 
 
-def load_frames(seq, indices: list[int], H: int, W: int, desc: str = "adapt: read") -> SequenceFrames:
-    """Read image_2 and T_world_cam2 of ``indices`` of a sequence (any layout the reader opens)."""
+def load_frames(seq, indices: list[int], H: int, W: int, desc: str = "adapt: read",
+                stereo: bool = False) -> SequenceFrames:
+    """Read image_2 and T_world_cam2 of ``indices`` of a sequence (any layout the reader opens); ``stereo``:
+    then image_3 and T_world_cam3 of the same frames (image_3 shares image_2's K: ``seq.has_right``)."""
     from mono_map.depth.inference import resize_to_input
     from mono_map.progress import progress
 
+    reads = [(i, seq.image) for i in indices] + ([(i, seq.image_right) for i in indices] if stereo else [])
     imgs, content = [], None
-    for i in progress(indices, total=len(indices), desc=desc, unit="frame"):
-        im, content = resize_to_input(seq.image(i), H, W)
+    for i, read in progress(reads, total=len(reads), desc=desc, unit="image"):
+        im, content = resize_to_input(read(i), H, W)
         imgs.append(im)
     h, w = seq.image_size
     K = seq.calib.K2.copy()
     K[0] *= content[1] / w
     K[1] *= content[0] / h
-    poses = np.stack([seq.T_world_cam2(i) for i in indices])
-    return SequenceFrames(np.stack(imgs), K, poses, content, list(indices))
+    poses = [seq.T_world_cam2(i) for i in indices] + ([seq.T_world_cam3(i) for i in indices] if stereo else [])
+    return SequenceFrames(np.stack(imgs), K, np.stack(poses), content, list(indices), stereo)
+
+
+def use_stereo(seq, indices: list[int], mode: str) -> bool:
+    """Whether an adaptation uses image_3: ``auto`` if every frame has it, ``on`` (required), ``off``."""
+    if mode == "off":
+        return False
+    have = seq.has_right(indices)
+    if mode == "on" and not have:
+        why = ("its calibration has no P3 with image_2's intrinsics" if seq.calib.P3 is None
+               or not np.allclose(seq.calib.P3[:, :3], seq.calib.P2[:, :3], atol=1e-6)
+               else f"{seq.right_dir} lacks images of some of the frames")
+        hint = f" (render them: mono-map synth --seq {seq.name} --stereo)" if seq.is_synthetic else ""
+        raise MonoMapError(f"--stereo on: {seq.path}: no right colour camera to use, {why}{hint}")
+    return have
+
+
+def with_stereo_sources(sources: dict[int, list[int]], n: int) -> dict[int, list[int]]:
+    """Every frame j of ``n`` gets its own right image (row n + j) as one more source, after its temporal ones."""
+    return {j: sources.get(j, []) + [n + j] for j in range(n)}
 
 
 # ------------------------------------------------------------------ the run
@@ -201,6 +231,9 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
         raise MonoMapError(f"--frames: adapt needs at least 2 frames of a moving camera, got {len(indices)}")
     centres = np.stack([seq.T_world_cam2(i)[:3, 3] for i in indices])
     sources = choose_sources(centres, cfg.min_baseline, cfg.max_baseline, cfg.max_offset, cfg.per_side)
+    stereo = use_stereo(seq, indices, cfg.stereo)
+    if stereo:
+        sources = with_stereo_sources(sources, len(indices))
     if not sources:
         steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)
         raise MonoMapError(f"{seq.path}: too little motion to adapt: no two frames within {cfg.max_offset} frames "
@@ -217,6 +250,8 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
 
     base_sha = sha256_file(path)
     key = run_key(base_sha, seq.root, seq_name, indices, cfg)
+    if stereo:
+        key["stereo"] = True
     run_id = digest(key)
     name = f"{path.stem}-adapted-{seq_name}-{digest({**key, 'steps': cfg.steps})}"
     ckpt = out_dir / f"{name}.pt"
@@ -225,12 +260,14 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
         return AdaptResult(ckpt, json.loads((out_dir / f"{name}.json").read_text()))
 
     H, W = model.cfg.input_height, model.cfg.input_width
-    data = load_frames(seq, indices, H, W)
+    data = load_frames(seq, indices, H, W, stereo=stereo)
+    log(f"adapt: {len(indices)} frames, {len(sources)} targets; sources: neighbours by baseline"
+        + (" and each frame's right camera (image_3)" if stereo else " (no image_3: --stereo off or not there)"))
     targets = sorted(sources)
     heldout = held_out(targets)
     base_beyond = None
     if model.cfg.beyond:
-        base_beyond = base_beyond_probs(model, data.images, cfg.precision)
+        base_beyond = base_beyond_probs(model, data.images[:len(indices)], cfg.precision)
     replay = load_replay(replay_seq, H, W, cfg.replay_frames) if replay_seq is not None else None
     if not cfg.train_encoder:
         for p in model.encoder.parameters():
@@ -288,7 +325,7 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
     model.load_state_dict(best["state"])
     meta = {"name": name, "adapted": {
         "base": str(path), "base_sha256": base_sha, "sequence": seq_name, "data_root": str(seq.root),
-        "frames": indices, "targets": len(targets), "heldout": heldout, "settings": asdict(cfg),
+        "frames": indices, "targets": len(targets), "heldout": heldout, "settings": asdict(cfg), "stereo": stereo,
         "best_step": best["step"], "curve": curve, "wall_time_s_this_run": round(wall, 1), "run_id": run_id},
         "steps": cfg.steps, "base_training": payload.get("training", {})}
     out_dir.mkdir(parents=True, exist_ok=True)

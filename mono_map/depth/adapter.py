@@ -58,8 +58,9 @@ class Adapter:
         return depth.clamp(self.bins.min_depth, self.bins.max_depth), beyond_logit
 
     def source_lists(self, targets: list[int]) -> list[list[int]]:
-        """Each target's sources, padded to 2·per_side by repeating its own (the loss is a minimum over them)."""
-        n = max(2, 2 * self.cfg.per_side)
+        """Each target's sources, padded to 2·per_side (+ 1: its right image) by repeating its own (the loss is a
+        minimum over them)."""
+        n = max(2, 2 * self.cfg.per_side) + int(self.frames.stereo)
         return [[self.sources[t][k % len(self.sources[t])] for k in range(n)] for t in targets]
 
     def batch(self, targets: list[int]):

@@ -38,7 +38,8 @@ class MultiviewConfig:
     min_baseline, max_baseline: metres between the cameras' centres; max_offset: frames searched each way;
     temperature: τ of the likelihood exp(−cost/τ) (cost: SSIM+L1 error, 0–1); prior_power: a of p^a;
     scale: the cost is computed at 1/scale of the image resolution; window: the cost is averaged over
-    window×window pixels of that grid (odd; 1 = per pixel)."""
+    window×window pixels of that grid (odd; 1 = per pixel); stereo: the frame's own right colour camera
+    (image_3, same instant, KITTI's 0.54 m baseline) is one more source."""
 
     sources: int = 2
     min_baseline: float = 0.3
@@ -49,6 +50,7 @@ class MultiviewConfig:
     prior_power: float = 1.0
     scale: int = 4
     window: int = 3
+    stereo: bool = False
 
 
 def check_multiview_config(cfg: MultiviewConfig) -> MultiviewConfig:
@@ -233,21 +235,23 @@ class MultiviewPosterior:
         self.cache = int(cache)
         self.last_informative = float("nan")     # fraction of the last frame's pixels the sweep changed
 
-    def small_image(self, seq, i: int):
-        """Frame ``i``'s image_2 in grey (channel mean), area-averaged to 1/scale: (1,h,w) float tensor in [0,1]
-        (cached)."""
+    def small_image(self, seq, i: int, right: bool = False):
+        """Frame ``i``'s image_2 (``right``: image_3) in grey (channel mean), area-averaged to 1/scale: (1,h,w)
+        float tensor in [0,1] (cached)."""
         import torch
         import torch.nn.functional as F
 
-        if i not in self.images:
-            img = torch.as_tensor(np.ascontiguousarray(seq.image(i))).float().mean(-1, keepdim=True).permute(2, 0, 1).div(255.0)
+        key = (i, right)
+        if key not in self.images:
+            rgb = seq.image_right(i) if right else seq.image(i)
+            img = torch.as_tensor(np.ascontiguousarray(rgb)).float().mean(-1, keepdim=True).permute(2, 0, 1).div(255.0)
             H, W = img.shape[1:]
             s = int(self.cfg.scale)
-            self.images[i] = F.interpolate(img.unsqueeze(0), size=(math.ceil(H / s), math.ceil(W / s)),
-                                           mode="area")[0] if s > 1 else img
+            self.images[key] = F.interpolate(img.unsqueeze(0), size=(math.ceil(H / s), math.ceil(W / s)),
+                                             mode="area")[0] if s > 1 else img
             while len(self.images) > self.cache:
                 self.images.popitem(last=False)
-        return self.images[i]
+        return self.images[key]
 
     def neighbours(self, seq, i: int) -> list[int]:
         """Frames of ``seq`` that serve ``i`` as sources (by baseline; at most ``sources``)."""
@@ -272,18 +276,22 @@ class MultiviewPosterior:
 
         if pred.probs is None:
             raise MonoMapError("multiview: the prediction has no bin probabilities")
-        srcs = self.neighbours(seq, i)
-        if not srcs:
+        views = [(j, False) for j in self.neighbours(seq, i)] + ([(i, True)] if self.cfg.stereo else [])
+        if not views:
             self.last_informative = 0.0
             return pred
+        if self.cfg.stereo and not seq.has_right([i]):
+            raise MonoMapError(f"multiview stereo: {seq.right_dir}: no right image (image_3) of frame {i}, or no P3 "
+                               "with image_2's intrinsics in the calibration")
         tgt = self.small_image(seq, i)
         h, w = tgt.shape[1:]
         H, W = pred.depth.shape
         Ks = scaled_intrinsics(seq.calib.K2, w / W, h / H)
         T_t = seq.T_world_cam2(i)
-        rel = [np.linalg.inv(seq.T_world_cam2(j)) @ T_t for j in srcs]
+        rel = [np.linalg.inv(seq.T_world_cam3(j) if right else seq.T_world_cam2(j)) @ T_t for j, right in views]
         with torch.no_grad():
-            cost, ident = sweep_cost(tgt, [self.small_image(seq, j) for j in srcs], Ks, rel, self.bins.centres)
+            cost, ident = sweep_cost(tgt, [self.small_image(seq, j, right) for j, right in views], Ks, rel,
+                                     self.bins.centres)
             ll, info = likelihood(cost, ident, self.cfg.temperature, int(self.cfg.window))
             step = int(pred.probs_step)
             prior = torch.as_tensor(np.ascontiguousarray(pred.probs, dtype=np.float32))

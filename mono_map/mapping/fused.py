@@ -74,13 +74,14 @@ class FusedConfig:
     multiview_temperature: float = 0.02
     subpixel: int = 0
     mode: int = 1
+    stereo: int = 0                    # 1: image_3 is one more source of the posterior (needs multiview on)
 
     def multiview_config(self):
         """The multi-view posterior's settings (:mod:`mono_map.depth.multiview`), None when it is off."""
         from mono_map.depth.multiview import MultiviewConfig
 
-        return MultiviewConfig(sources=int(self.multiview), temperature=self.multiview_temperature) \
-            if self.multiview else None
+        return MultiviewConfig(sources=int(self.multiview), temperature=self.multiview_temperature,
+                               stereo=bool(self.stereo)) if self.multiview else None
 
 
 def check_fused_config(cfg: FusedConfig) -> FusedConfig:
@@ -108,6 +109,11 @@ def check_fused_config(cfg: FusedConfig) -> FusedConfig:
     positive("fused-multiview-temperature", cfg.multiview_temperature)
     if cfg.subpixel not in (0, 1):
         raise MonoMapError(f"--fused-subpixel: must be 0 or 1, got {cfg.subpixel}")
+    if cfg.stereo not in (0, 1):
+        raise MonoMapError(f"--fused-stereo: must be 0 or 1, got {cfg.stereo}")
+    if cfg.stereo and not cfg.multiview:
+        raise MonoMapError("--fused-stereo: the right image is a source of the multi-view posterior; it needs "
+                           "--fused-multiview 1 or 2")
     if cfg.mode not in (0, 1):
         raise MonoMapError(f"--fused-mode: must be 0 (the expected depth) or 1 (the mode), got {cfg.mode}")
     return cfg
