@@ -58,10 +58,16 @@ class Adapter:
         return depth.clamp(self.bins.min_depth, self.bins.max_depth), beyond_logit
 
     def source_lists(self, targets: list[int]) -> list[list[int]]:
-        """Each target's sources, padded to 2·per_side (+ 1: its right image) by repeating its own (the loss is a
-        minimum over them)."""
-        n = max(2, 2 * self.cfg.per_side) + int(self.frames.stereo)
-        return [[self.sources[t][k % len(self.sources[t])] for k in range(n)] for t in targets]
+        """Each target's neighbouring frames, padded to 2·per_side by repeating its own (the loss is a minimum over
+        them); with the right camera, its right image last (a target without neighbours: the right image alone)."""
+        n = max(2, 2 * self.cfg.per_side)
+        if not self.frames.stereo:
+            return [[self.sources[t][k % len(self.sources[t])] for k in range(n)] for t in targets]
+        out = []
+        for t in targets:
+            near = self.sources[t][:-1] or self.sources[t][-1:]
+            out.append([near[k % len(near)] for k in range(n)] + [self.sources[t][-1]])
+        return out
 
     def batch(self, targets: list[int]):
         """Network inputs (B,3,H,W); at the loss resolution the targets, 2·per_side sources each (repeated if
@@ -86,8 +92,14 @@ class Adapter:
         low = self.forward(x)
         depth, beyond_logit = self.depth_and_beyond(low, tgt.shape[-2:])
         K = self.K.expand(len(targets), 3, 3)
-        reproj, seen = photometric.min_reprojection_error(tgt, sources, depth, K, poses)
-        photo, used = photometric.reduce_reprojection(reproj, seen, tgt, sources, mask=mask, trim=self.cfg.trim)
+        if self.frames.stereo:   # the neighbours and the right image are auto-masked apart
+            reproj, seen = photometric.grouped_reprojection(
+                tgt, [(sources[:-1], poses[:-1]), (sources[-1:], poses[-1:])], depth, K)
+            photo, used = photometric.reduce_reprojection(reproj, seen, tgt, sources, mask=mask, automask=False,
+                                                          trim=self.cfg.trim)
+        else:
+            reproj, seen = photometric.min_reprojection_error(tgt, sources, depth, K, poses)
+            photo, used = photometric.reduce_reprojection(reproj, seen, tgt, sources, mask=mask, trim=self.cfg.trim)
         smooth = photometric.smoothness_loss(depth, tgt)
         info = {"used": float(used.float().mean())}
         if self.hints is not None:

@@ -154,6 +154,11 @@ def likelihood(cost, ident, temperature: float, window: int = 1):
     ``identity`` (h,w): planes no source sees get the pixel's mean cost, then costs and identity are averaged
     over ``window``×``window`` pixels; a pixel is informative where at least half the planes are seen and the
     best plane beats the unwarped sources."""
+    return likelihood_of_groups([(cost, ident)], temperature, window)
+
+
+def windowed_cost(cost, ident, window: int = 1):
+    """(cost (D,h,w), informative (h,w) bool) of one sweep, as :func:`likelihood` reads it."""
     import torch
     import torch.nn.functional as F
 
@@ -166,8 +171,23 @@ def likelihood(cost, ident, temperature: float, window: int = 1):
         r = window // 2
         c = F.avg_pool2d(F.pad(c.unsqueeze(0), (r, r, r, r), mode="replicate"), window, 1)[0]
         ident = F.avg_pool2d(F.pad(ident[None, None], (r, r, r, r), mode="replicate"), window, 1)[0, 0]
+    return c, (n_seen * 2 >= cost.shape[0]) & (ident > c.min(0).values)
+
+
+def likelihood_of_groups(groups: list, temperature: float, window: int = 1):
+    """:func:`likelihood` of several sweeps ``groups`` [(cost, identity), ...], each auto-masked on its own (the
+    neighbouring frames as one group, the same instant's right image as another: a scene moving with the car
+    matches the unwarped neighbours, not the unwarped right image); per pixel the minimum cost over the groups
+    informative there."""
+    import torch
+
+    c, informative = None, None
+    for cost, ident in groups:
+        cg, ig = windowed_cost(cost, ident, window)
+        cg = torch.where(ig.unsqueeze(0), cg, torch.full_like(cg, float("inf")))
+        c, informative = (cg, ig) if c is None else (torch.minimum(c, cg), informative | ig)
+    c = torch.where(informative.unsqueeze(0), c, torch.zeros_like(c))
     best = c.min(0).values
-    informative = (n_seen * 2 >= cost.shape[0]) & (ident > best)
     return (best.unsqueeze(0) - c) / float(temperature), informative
 
 
@@ -289,10 +309,11 @@ class MultiviewPosterior:
         Ks = scaled_intrinsics(seq.calib.K2, w / W, h / H)
         T_t = seq.T_world_cam2(i)
         rel = [np.linalg.inv(seq.T_world_cam3(j) if right else seq.T_world_cam2(j)) @ T_t for j, right in views]
-        with torch.no_grad():
-            cost, ident = sweep_cost(tgt, [self.small_image(seq, j, right) for j, right in views], Ks, rel,
-                                     self.bins.centres)
-            ll, info = likelihood(cost, ident, self.cfg.temperature, int(self.cfg.window))
+        with torch.no_grad():   # the neighbours and the right image are auto-masked apart (likelihood_of_groups)
+            groups = [[k for k, (_, right) in enumerate(views) if right == r] for r in (False, True)]
+            sweeps = [sweep_cost(tgt, [self.small_image(seq, *views[k]) for k in g], Ks, [rel[k] for k in g],
+                                 self.bins.centres) for g in groups if g]
+            ll, info = likelihood_of_groups(sweeps, self.cfg.temperature, int(self.cfg.window))
             step = int(pred.probs_step)
             prior = torch.as_tensor(np.ascontiguousarray(pred.probs, dtype=np.float32))
             size = tuple(prior.shape[1:])

@@ -104,6 +104,24 @@ def reprojection_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: 
     return reduce_reprojection(reproj, used, target, sources, mask, automask, trim)
 
 
+def grouped_reprojection(target: torch.Tensor, groups: list[tuple[list[torch.Tensor], list[torch.Tensor]]],
+                         depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(per-pixel error, counted pixels) of several source groups [(sources, poses), ...], each auto-masked on
+    its own: a pixel counts for a group where its warped error beats the group's unwarped sources (minus
+    :data:`AUTOMASK_MARGIN`), and its error is the minimum over the groups it counts for. The neighbouring
+    frames are one group, the same instant's right image another: a car moving with the camera matches the
+    unwarped neighbours (masked there) but not the unwarped right image. Reduce with ``automask=False``."""
+    best, counted = None, None
+    for sources, poses in groups:
+        reproj, used = min_reprojection_error(target, sources, depth, K, poses)
+        with torch.no_grad():
+            ident = torch.cat([photometric_error(s, target) for s in sources], 1).min(1, keepdim=True).values
+        used = used & (reproj < ident - AUTOMASK_MARGIN)
+        reproj = torch.where(used, reproj, torch.full_like(reproj, 1e3))
+        best, counted = (reproj, used) if best is None else (torch.minimum(best, reproj), counted | used)
+    return best, counted
+
+
 def reduce_reprojection(reproj: torch.Tensor, used: torch.Tensor, target: torch.Tensor, sources: list[torch.Tensor],
                         mask: torch.Tensor | None = None, automask: bool = True, trim: float = 0.0
                         ) -> tuple[torch.Tensor, torch.Tensor]:
