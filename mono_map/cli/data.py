@@ -21,6 +21,9 @@ def register(subparsers) -> None:
     add_data_root(p, help="KITTI root (default $MONO_MAP_DATA or ./data/kitti)")
     p.add_argument("--workers", type=int, default=2, help="parallel render processes (default 2)")
     p.add_argument("--force", action="store_true", help="re-render every frame even if present")
+    p.add_argument("--stereo", action="store_true",
+                   help="also render KITTI's right colour camera (image_3, projection P3 of calib.txt) of the frames "
+                        "asked for; of frames already rendered, only their missing image_3")
     p.add_argument("--layout", choices=("odometry", "raw"), default="odometry",
                    help="raw: also write the rendered frames as a KITTI raw drive (OXTS, the three date-folder "
                         "calibration files; docs/data.md), e.g. <root>/2000_01_01/2000_01_01_drive_NAME_sync")
@@ -58,6 +61,9 @@ def run_synth(args: argparse.Namespace) -> int:
     frames = parse_frames(args.frames)
     if args.workers < 1:
         raise MonoMapError(f"--workers: must be >= 1, got {args.workers}")
+    if args.stereo and args.layout == "raw":
+        raise MonoMapError("--stereo: the raw layout (--layout raw) carries image_02 only; render --stereo "
+                           "without --layout raw")
     recipe = load_recipe(args.seq)
     n = frames.needed()
     if n is not None and n > recipe.frames:
@@ -72,13 +78,17 @@ def run_synth(args: argparse.Namespace) -> int:
         drive = args.drive or synthetic_drive_name(recipe.name)
         check_raw_target(root, drive, force=True)   # before any rendering
     t0 = time.perf_counter()
-    seq_dir = generate_sequence(recipe, root, frames=n, workers=args.workers, force=args.force)
+    seq_dir = generate_sequence(recipe, root, frames=n, workers=args.workers, force=args.force,
+                                 stereo=args.stereo)
     dt = time.perf_counter() - t0
     from mono_map.data.synth.writer import read_marker
 
-    n = read_marker(seq_dir)["n_frames"]
+    marker = read_marker(seq_dir)
+    n = marker["n_frames"]
     size = sum(p.stat().st_size for p in seq_dir.rglob("*") if p.is_file())
-    print(f"sequence {recipe.name}: {n} frames in {seq_dir} ({size / 1e6:.0f} MB), {dt:.1f} s", file=sys.stderr)
+    right = f" (image_3 of the first {marker['image_3']})" if "image_3" in marker else ""
+    print(f"sequence {recipe.name}: {n} frames{right} in {seq_dir} ({size / 1e6:.0f} MB), {dt:.1f} s",
+          file=sys.stderr)
     if drive is not None:
         from mono_map.data.kitti_odometry import KittiSequence
         from mono_map.data.kitti_raw_writer import write_raw_drive

@@ -2,7 +2,8 @@
 
 Frame i depends only on (recipe, i): the town is built from the whole recipe and every
 frame has its own random streams seeded by (seed, i), so a prefix can be extended later
-and two generations of the same recipe are byte-identical.
+and two generations of the same recipe are byte-identical. The right colour camera (image_3,
+opt-in: ``stereo``) has a stream of its own, so asking for it changes no other file.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ FRAME_PERIOD = 0.1          # seconds between consecutive real poses (KITTI reco
 
 
 class FrameRenderer:
-    """Holds the ray-casting scene of one town; renders (image, depth, scan) of frame i."""
+    """Holds the ray-casting scene of one town; renders (image, depth, scan) of frame i, and on request the
+    right colour camera's image (KITTI's image_3, projection P3)."""
 
     def __init__(self, recipe: Recipe, town, nthreads: int = 0, poses: np.ndarray | None = None):
         import open3d as o3d
@@ -49,6 +51,10 @@ class FrameRenderer:
         self.T_cam0_cam2 = pose_inverse(T_cam_cam0_from_projection(calib["P2"]))
         self.T_cam0_velo = calib["Tr"]
         self.camera = PinholeCamera(self.K2, KITTI_IMAGE_HEIGHT, KITTI_IMAGE_WIDTH)
+        self.K3 = calib["P3"][:, :3].copy()
+        self.T_cam0_cam3 = pose_inverse(T_cam_cam0_from_projection(calib["P3"]))
+        self.camera3 = self.camera if np.array_equal(self.K3, self.K2) else \
+            PinholeCamera(self.K3, KITTI_IMAGE_HEIGHT, KITTI_IMAGE_WIDTH)
         self.light = Lighting.from_recipe(recipe.light)
         self.lidar_dirs = ray_directions()
         self.poses = frame_poses(recipe) if poses is None else poses   # (n, 4, 4) T_world_cam0 per frame
@@ -65,6 +71,16 @@ class FrameRenderer:
         rng = np.random.default_rng([self.recipe.seed, i, 2])
         pts = scan(self.scene, self.town, T_world_cam0 @ self.T_cam0_velo, self.lidar_dirs, rng, self.nthreads)
         return rgb, depth, pts
+
+    def render_right(self, i: int) -> np.ndarray:
+        """rgb H×W×3 uint8 of frame i seen by the right colour camera (image_3), from its own random stream
+        (seed, i, 3): rendering it leaves image_2, depth_2 and the scan as they were."""
+        from mono_map.data.synth.camera import render
+
+        rng = np.random.default_rng([self.recipe.seed, i, 3])
+        rgb, _ = render(self.scene, self.town, self.light, self.camera3, self.poses[i] @ self.T_cam0_cam3, rng,
+                        self.nthreads)
+        return rgb
 
 
 _WORKER: dict = {}
@@ -117,14 +133,14 @@ def worker_pool(n: int, what: str, where, initializer=None, initargs: tuple = ()
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _init_worker(recipe, town_file, seq_dir, nthreads):
+def _init_worker(recipe, town_file, seq_dir, nthreads, stereo=False):
     """A render process starts while the parent still builds the town: it imports open3d and computes the
     frame poses now, and reads the town from ``town_file`` (written before any frame is asked for) with its
     first frame."""
     import open3d  # noqa: F401  (~1.6 s, overlapping the town build)
 
     _WORKER.update(recipe=recipe, town_file=town_file, seq_dir=Path(seq_dir), nthreads=nthreads,
-                   poses=frame_poses(recipe))
+                   poses=frame_poses(recipe), stereo=stereo)
 
 
 def _renderer() -> "FrameRenderer":
@@ -138,9 +154,18 @@ def _renderer() -> "FrameRenderer":
 
 
 def render_and_write(i: int) -> int:
-    """A render worker's task: frame ``i`` of the worker's sequence, rendered and written; returns ``i``."""
+    """A render worker's task: frame ``i`` of the worker's sequence (with ``stereo`` its image_3 too), rendered
+    and written; returns ``i``."""
     rgb, depth, pts = _renderer().render(i)
     writer.write_frame(_WORKER["seq_dir"], i, rgb, depth, pts)
+    if _WORKER.get("stereo"):
+        render_right_and_write(i)
+    return i
+
+
+def render_right_and_write(i: int) -> int:
+    """A render worker's task: only the right camera's image_3 of frame ``i`` (its other files are there)."""
+    writer.write_right(_WORKER["seq_dir"], i, _renderer().render_right(i))
     return i
 
 
@@ -191,12 +216,13 @@ def _is_current(info: dict | None, recipe: Recipe) -> bool:
 
 
 def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: int = 2, force: bool = False,
-                      quiet: bool = False) -> Path:
+                      quiet: bool = False, stereo: bool = False) -> Path:
     """Write the first ``frames`` frames (None = all) of ``recipe`` under ``root``; returns the sequence dir.
 
     Existing complete frames of the same recipe and generator version are kept (a prefix is
     extended); ``force`` re-renders everything.  Refuses to touch a directory that holds a
-    sequence not written by this generator (no marker: e.g. a real KITTI sequence).
+    sequence not written by this generator (no marker: e.g. a real KITTI sequence).  ``stereo`` also
+    renders the right colour camera (image_3) of those frames; of a frame already there, only that.
     """
     root = Path(root)
     n = recipe.frames if frames is None else int(frames)
@@ -222,7 +248,8 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
                            "e.g. a real KITTI sequence); refusing to overwrite it")
     _check_not_busy(seq_dir, partial, force)
     current = _is_current(marker, recipe)
-    if not force and current and marker.get("n_frames", 0) >= n and partial is None:
+    if not force and current and marker.get("n_frames", 0) >= n and partial is None \
+            and (not stereo or writer.leading_right_frames(seq_dir, n) >= n):
         return seq_dir
     fresh = force or (marker is not None and not current) or (partial is not None and not _is_current(partial, recipe))
     if fresh:
@@ -233,35 +260,43 @@ def generate_sequence(recipe: Recipe, root, frames: int | None = None, workers: 
     writer.write_marker(seq_dir, {**marker_info(recipe, n), "pid": os.getpid(), "host": socket.gethostname(),
                                   "pid_start": process_start(os.getpid())}, partial=True)
     todo = list(range(n)) if fresh else [i for i in range(n) if not writer.frame_complete(seq_dir, i)]
+    right = [i for i in sorted(set(range(n)) - set(todo)) if stereo and not writer.right_complete(seq_dir, i)]
+    tasks = sorted([(i, False) for i in todo] + [(i, True) for i in right])   # (frame, image_3 only)
+    what = [f"{len(todo)} frames" + " with their image_3" * stereo] if todo else []
+    what += [f"the image_3 of {len(right)} frames already there"] if right else []
     t0 = time.perf_counter()
-    if todo:
+    if tasks:
         def town_built(town) -> None:
             if not quiet:
                 print(f"synth {recipe.name}: town of {town.stats['triangles']:,} triangles "
                       f"({town.stats['buildings']} buildings, {town.stats['cars']} cars of which "
                       f"{town.stats['black_cars']} black, {town.stats['trees']} trees) built in "
-                      f"{time.perf_counter() - t0:.1f} s; rendering {len(todo)} frames with {workers} worker(s)",
+                      f"{time.perf_counter() - t0:.1f} s; rendering {' and '.join(what)} with {workers} worker(s)",
                       file=sys.stderr)
         try:
-            _render_frames(recipe, seq_dir, todo, workers, quiet, town_built)
+            _render_frames(recipe, seq_dir, tasks, workers, quiet, town_built, stereo)
         finally:  # interrupted or failed: the workers are gone, so are their half-written frame files
-            for sub in ("image_2", "depth_2", "velodyne"):
+            for sub in ("image_2", "depth_2", "velodyne", "image_3"):
                 clean_stale_temps(seq_dir / sub)
-    if fresh:
-        writer.remove_frames_from(seq_dir, n)
+    if fresh:   # a re-render without --stereo leaves no image_3 of the old one
+        writer.remove_frames_from(seq_dir, n, image_3_from=None if stereo else 0)
     n_keep = max(n, marker.get("n_frames", 0) if (marker and current and not fresh) else n)
     idx = frame_pose_indices(recipe)[:n_keep]
     times = (idx - recipe.first_pose) * FRAME_PERIOD
     writer.write_sequence_files(root, recipe.name, frame_pose_lines(recipe, n_keep), times)
     info = marker_info(recipe, n_keep)
+    if stereo or (marker and current and not fresh and "image_3" in marker):
+        info["image_3"] = writer.leading_right_frames(seq_dir, n_keep)
     info["seconds"] = round(time.perf_counter() - t0, 2)
     writer.write_marker(seq_dir, info)
     partial_path.unlink(missing_ok=True)
     return seq_dir
 
 
-def _render_frames(recipe, seq_dir: Path, todo: list[int], workers: int, quiet: bool, town_built) -> None:
-    """Build the town and render the frames ``todo`` into ``seq_dir``: in this process with one worker, else
+def _render_frames(recipe, seq_dir: Path, tasks: list[tuple[int, bool]], workers: int, quiet: bool, town_built,
+                   stereo: bool = False) -> None:
+    """Build the town and render the ``tasks`` (frame, only its image_3?) into ``seq_dir`` (``stereo``: a whole
+    frame with its image_3): in this process with one worker, else
     in ``workers`` spawned processes started before the town is built (their imports and poses overlap it);
     the town reaches them through a temporary pickle in the system's temporary directory. A worker that dies
     stops the run with a MonoMapError (:func:`worker_pool`); the frames written are kept."""
@@ -274,23 +309,24 @@ def _render_frames(recipe, seq_dir: Path, todo: list[int], workers: int, quiet: 
     desc = f"synth {recipe.name}"
 
     def shown(frames):
-        return frames if quiet else progress(frames, total=len(todo), desc=desc, unit="frame")
+        return frames if quiet else progress(frames, total=len(tasks), desc=desc, unit="frame")
 
     town_file = Path(tempfile.gettempdir()) / f"mono-map-town-{recipe.name}-{os.getpid()}.pkl"
-    if workers == 1 or len(todo) == 1:
+    if workers == 1 or len(tasks) == 1:
         town = build_town(recipe)
         town_built(town)
-        _WORKER.update(seq_dir=seq_dir, renderer=FrameRenderer(recipe, town, 0))
+        _WORKER.update(seq_dir=seq_dir, renderer=FrameRenderer(recipe, town, 0), stereo=stereo)
         try:
-            for i in shown(todo):
-                render_and_write(i)
+            for i, right_only in shown(tasks):
+                (render_right_and_write if right_only else render_and_write)(i)
         finally:
             _WORKER.clear()
         return
     kernels.library()           # compile the renderer's kernels once, here, before the workers load them
-    nproc = min(workers, len(todo))
+    nproc = min(workers, len(tasks))
     try:
-        with worker_pool(nproc, desc, seq_dir, _init_worker, (recipe, str(town_file), str(seq_dir), 1)) as pool:
+        with worker_pool(nproc, desc, seq_dir, _init_worker, (recipe, str(town_file), str(seq_dir), 1, stereo)) \
+                as pool:
             town = build_town(recipe)
             town_built(town)
             tmp = town_file.with_suffix(".tmp")
@@ -298,26 +334,29 @@ def _render_frames(recipe, seq_dir: Path, todo: list[int], workers: int, quiet: 
                 pickle.dump(town, f, protocol=pickle.HIGHEST_PROTOCOL)
             os.replace(tmp, town_file)
             del town
-            for _ in shown(_completed(pool, todo, 2 * nproc)):
+            for _ in shown(_completed(pool, tasks, 2 * nproc)):
                 pass
     finally:
         town_file.unlink(missing_ok=True)
         town_file.with_suffix(".tmp").unlink(missing_ok=True)
 
 
-def _completed(pool, todo: list[int], in_flight: int):
-    """Render ``todo`` on ``pool``, ``in_flight`` frames submitted at a time; yields each frame as it is written."""
+def _completed(pool, tasks: list[tuple[int, bool]], in_flight: int):
+    """Render ``tasks`` on ``pool``, ``in_flight`` submitted at a time; yields each frame as it is written."""
     from concurrent.futures import FIRST_COMPLETED, wait
 
-    queue = iter(todo)
-    pending = {pool.submit(render_and_write, i) for i in itertools.islice(queue, in_flight)}
+    def submit(task):
+        return pool.submit(render_right_and_write if task[1] else render_and_write, task[0])
+
+    queue = iter(tasks)
+    pending = {submit(t) for t in itertools.islice(queue, in_flight)}
     while pending:
         done, pending = wait(pending, return_when=FIRST_COMPLETED)
         for f in done:
             yield f.result()
             nxt = next(queue, None)
             if nxt is not None:
-                pending.add(pool.submit(render_and_write, nxt))
+                pending.add(submit(nxt))
 
 
 def ensure_sequence(root, name: str, frames: int | None = None) -> bool:

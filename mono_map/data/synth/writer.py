@@ -1,6 +1,7 @@
 """KITTI odometry layout on disk, written atomically (temp file + rename).
 
 root/sequences/XX/image_2/NNNNNN.png   RGB (stored BGR by OpenCV), 1241×376
+root/sequences/XX/image_3/NNNNNN.png   right colour camera (P3), as image_2; only with synth --stereo
 root/sequences/XX/depth_2/NNNNNN.png   dense z-depth of image_2, uint16 metres × 256, 0 = sky / none
 root/sequences/XX/velodyne/NNNNNN.bin  float32 x y z reflectance (velodyne frame)
 root/sequences/XX/calib.txt            real KITTI 00 calibration (P0..P3, Tr), copied verbatim
@@ -57,14 +58,35 @@ def read_calib() -> dict[str, np.ndarray]:
     return out
 
 
-def frame_paths(seq_dir: Path, i: int) -> dict[str, Path]:
+def frame_paths(seq_dir: Path, i: int, stereo: bool = False) -> dict[str, Path]:
+    """The files of frame ``i``; with ``stereo`` also the right camera's ``image_3``."""
     name = f"{i:06d}"
-    return {"image": seq_dir / "image_2" / f"{name}.png", "depth": seq_dir / "depth_2" / f"{name}.png",
-            "velodyne": seq_dir / "velodyne" / f"{name}.bin"}
+    paths = {"image": seq_dir / "image_2" / f"{name}.png", "depth": seq_dir / "depth_2" / f"{name}.png",
+             "velodyne": seq_dir / "velodyne" / f"{name}.bin"}
+    if stereo:
+        paths["image_3"] = seq_dir / "image_3" / f"{name}.png"
+    return paths
 
 
-def frame_complete(seq_dir: Path, i: int) -> bool:
-    return all(p.is_file() for p in frame_paths(seq_dir, i).values())
+def frame_complete(seq_dir: Path, i: int, stereo: bool = False) -> bool:
+    return all(p.is_file() for p in frame_paths(seq_dir, i, stereo).values())
+
+
+def right_complete(seq_dir: Path, i: int) -> bool:
+    return frame_paths(seq_dir, i, stereo=True)["image_3"].is_file()
+
+
+def leading_right_frames(seq_dir: Path, n: int) -> int:
+    """How many of the first ``n`` frames have their ``image_3`` file, counted from frame 0 to the first gap."""
+    return next((i for i in range(n) if not right_complete(seq_dir, i)), n)
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    import cv2
+
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1]), png_params("image")):
+            raise MonoMapError(f"{path}: could not write PNG")
 
 
 def write_frame(seq_dir: Path, i: int, rgb: np.ndarray, depth_m: np.ndarray, points: np.ndarray) -> None:
@@ -73,14 +95,17 @@ def write_frame(seq_dir: Path, i: int, rgb: np.ndarray, depth_m: np.ndarray, poi
     from mono_map.data.depth_png import encode_depth
 
     paths = frame_paths(seq_dir, i)
-    with atomic_path(paths["image"]) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1]), png_params("image")):
-            raise MonoMapError(f"{paths['image']}: could not write PNG")
+    _write_png(paths["image"], rgb)
     with atomic_path(paths["depth"]) as tmp:
         if not cv2.imwrite(str(tmp), encode_depth(depth_m), png_params("depth")):
             raise MonoMapError(f"{paths['depth']}: could not write depth PNG")
     with atomic_path(paths["velodyne"]) as tmp:
         np.ascontiguousarray(points, dtype=np.float32).tofile(tmp)
+
+
+def write_right(seq_dir: Path, i: int, rgb: np.ndarray) -> None:
+    """The right colour camera's image of frame ``i`` (``image_3``), written as image_2 is."""
+    _write_png(frame_paths(seq_dir, i, stereo=True)["image_3"], rgb)
 
 
 def write_sequence_files(root: Path, name: str, pose_lines: list[str], times: np.ndarray) -> None:
@@ -90,14 +115,16 @@ def write_sequence_files(root: Path, name: str, pose_lines: list[str], times: np
     write_text_atomic(root / "poses" / f"{name}.txt", "".join(line + "\n" for line in pose_lines))
 
 
-def remove_frames_from(seq_dir: Path, n: int) -> None:
-    """Delete frame files with index >= n (a shorter regeneration leaves no strays)."""
-    for sub, ext in (("image_2", ".png"), ("depth_2", ".png"), ("velodyne", ".bin")):
+def remove_frames_from(seq_dir: Path, n: int, image_3_from: int | None = None) -> None:
+    """Delete frame files with index >= n (a shorter regeneration leaves no strays); ``image_3`` files from
+    index ``image_3_from`` on (default n; 0 drops every right image a re-render without --stereo made stale)."""
+    for sub, ext, first in (("image_2", ".png", n), ("depth_2", ".png", n), ("velodyne", ".bin", n),
+                            ("image_3", ".png", n if image_3_from is None else image_3_from)):
         d = seq_dir / sub
         if not d.is_dir():
             continue
         for p in d.iterdir():
-            if p.suffix == ext and p.stem.isdigit() and int(p.stem) >= n:
+            if p.suffix == ext and p.stem.isdigit() and int(p.stem) >= first:
                 p.unlink()
 
 
