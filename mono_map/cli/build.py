@@ -101,7 +101,8 @@ def run_build(args) -> int:
         predictor = load_predictor(args.model)  # a bad checkpoint fails here
         digest = model_digest(args.model)
     # then the data
-    seq = prepare_sequence(args.data_root, args.seq, selection)
+    stereo = bool(fcfg.stereo) and integration_of(args.integrate, source).fused   # a synthetic one renders image_3
+    seq = prepare_sequence(args.data_root, args.seq, selection, stereo=stereo)
     frames = selection.resolve(len(seq))
     if source.ground_truth and seq.depth(frames[0]) is None:
         raise MonoMapError(f"--source depth-gt: {seq.depth_dir} has no ground-truth depth for frame "

@@ -27,8 +27,9 @@ def check_data_root(root: str | os.PathLike | None) -> Path:
 
 
 def prepare_sequence(root: str | os.PathLike | None, name: str, frames: FrameSelection | None = None,
-                     render: bool = True) -> KittiSequence:
-    """Open sequence ``name``; with ``render``, first render the synthetic frames ``frames`` needs.
+                     render: bool = True, stereo: bool = False) -> KittiSequence:
+    """Open sequence ``name``; with ``render``, first render the synthetic frames ``frames`` needs (``stereo``:
+    with the right camera's image_3, as a real KITTI download has it).
 
     A synthetic sequence (recipe ``sequences/<name>.toml``, no real KITTI sequence of that name
     under the root) missing or shorter than the selection is rendered from its recipe, saying so;
@@ -46,7 +47,7 @@ def prepare_sequence(root: str | os.PathLike | None, name: str, frames: FrameSel
                 raise MonoMapError(f"{frames.option}: {frames.text!r} needs {need} frames; sequence {name} "
                                    f"(recipe {recipe_path(name).name}) has {recipe.frames}")
             want = recipe.frames if need is None else min(need, recipe.frames)
-            ensure_sequence(path, name, frames=want)
+            ensure_sequence(path, name, frames=want, stereo=stereo)
     seq = open_sequence(path, name)
     if frames is not None:
         frames.resolve(len(seq))  # refused here, before the command does any work

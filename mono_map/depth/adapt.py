@@ -222,7 +222,7 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
         from mono_map.frames import first_frames
 
         frames = first_frames(DEFAULT_FRAMES)
-    seq = prepare_sequence(data_root, seq_name, frames)
+    seq = prepare_sequence(data_root, seq_name, frames, stereo=cfg.stereo == "on")   # on: a synthetic one renders image_3
     if seq.poses_cam0 is None:
         raise MonoMapError(f"{seq.pose_path}: no poses for sequence '{seq_name}'; adapt needs the sequence's "
                            "metric poses")

@@ -132,7 +132,7 @@ def run_table(job: TableJob, pictures=None) -> Table:
     out_dir = prepare_output_dir(sequence_output_dir(job.out, job.seq))
     digest = model_digest(job.model)
     predictor = load_predictor(job.model)  # a bad checkpoint is refused before any data is read
-    seq = prepare_sequence(job.data_root, job.seq, job.frames)
+    seq = prepare_sequence(job.data_root, job.seq, job.frames, stereo=bool(job.fused.stereo))   # synthetic: image_3 too
     frames = job.frames.resolve(len(seq))
     desc = job.frames.describe(frames)
     tag = frames_tag(frames)

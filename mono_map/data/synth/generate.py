@@ -359,12 +359,10 @@ def _completed(pool, tasks: list[tuple[int, bool]], in_flight: int):
                 pending.add(submit(nxt))
 
 
-def ensure_sequence(root, name: str, frames: int | None = None) -> bool:
-    """Generate ``root/sequences/name`` from ``sequences/name.toml`` if missing or shorter than asked.
-
-    Returns True if it generated.  Never touches a directory without our marker (a real
-    KITTI sequence) and returns False for a name without a recipe.
-    """
+def ensure_sequence(root, name: str, frames: int | None = None, stereo: bool = False) -> bool:
+    """Generate ``root/sequences/name`` from ``sequences/name.toml`` if missing or shorter than asked (``stereo``:
+    or without the right camera's image_3 of those frames). Returns True if it generated.  Never touches a
+    directory without our marker (a real KITTI sequence) and returns False for a name without a recipe."""
     root = Path(root)
     path = recipe_path(name)
     if not path.is_file():
@@ -378,15 +376,17 @@ def ensure_sequence(root, name: str, frames: int | None = None) -> bool:
     _check_not_busy(seq_dir, partial_info)
     recipe = load_recipe(path)
     want = recipe.frames if frames is None else min(int(frames), recipe.frames)
-    if marker is not None and not partial and int(marker.get("n_frames", 0)) >= want:
+    have = int(marker.get("n_frames", 0)) if marker is not None and not partial else 0
+    if have >= want and (not stereo or writer.leading_right_frames(seq_dir, want) >= want):
         return False
     if marker is None:
         print(f"sequence {name} not found under {root}: generating it from {_short(path)} ({want} frames)",
               file=sys.stderr)
     else:
-        print(f"sequence {name} under {root} has {marker.get('n_frames', 0)} frames: extending it to {want} "
-              f"from {_short(path)}", file=sys.stderr)
-    generate_sequence(recipe, root, frames=want)
+        print(f"sequence {name} under {root} has {marker.get('n_frames', 0)} frames" + (
+            f": rendering the right camera's image_3 of its first {want}" if have >= want else
+            f": extending it to {want}") + f" from {_short(path)}", file=sys.stderr)
+    generate_sequence(recipe, root, frames=want, stereo=stereo)
     return True
 
 
