@@ -193,3 +193,18 @@ def test_adapt_auto_masks_the_neighbours_and_the_right_image_apart():
     _, used_plain = ph.reprojection_loss(tgt, [right], depth, Kt, [T_right])
     err_r, used_r = ph.grouped_reprojection(tgt, [([right], [T_right])], depth, Kt)
     assert torch.equal(used_r, used_plain)
+
+
+def test_a_fused_build_takes_the_right_images_and_keys_them(stereo_root, tmp_path):
+    import json
+
+    ckpt = write_tiny_checkpoint(tmp_path / "tinynet.pt", beyond=True)
+    keys = {}
+    for stereo in ("0", "1"):
+        out = tmp_path / f"m{stereo}"
+        assert cli_main(["build", "--seq", "tiny", "--data-root", str(stereo_root), "--out", str(out), "--frames", "0:3",
+                         "--model", str(ckpt), "--integrate", "fused", "--fused-stereo", stereo]) == 0
+        side = list(out.rglob("mono-fused*.json"))
+        assert len(side) == 1
+        keys[stereo] = json.loads(side[0].read_text())["job"]["integration"]["fused"]
+    assert "stereo" not in keys["0"] and keys["1"]["stereo"] == 1    # maps made before stereo keep their keys

@@ -36,7 +36,8 @@ from mono_map.mapping.octree import tree_leaves  # noqa: E402
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor  # noqa: E402
 
 GRID = ("spread_ref", "min_weight", "trunc_sigma", "trunc_min", "trunc_max", "trunc_behind", "max_depth",
-        "max_spread", "lag", "snap_window", "snap_step", "multiview", "multiview_temperature", "subpixel", "mode")
+        "max_spread", "lag", "snap_window", "snap_step", "multiview", "multiview_temperature", "subpixel", "mode",
+        "stereo")
 
 
 def score(tree, ref, surf) -> dict:
