@@ -89,13 +89,13 @@ def real_sources(real_root: str | Path, real01_frames: str = "0:78:2", extra: li
     return out
 
 
-def evaluate_sources(models: list[str], sources: list[Source], fast: bool = False) -> list[dict]:
+def evaluate_sources(models: list[str], sources: list[Source], fast: bool = False, flip: bool = False) -> list[dict]:
     """One row per (source, model): the summary numbers of ``evaluate_model`` on that source's frames, and the
     source's frames whose colour channels do not agree (``scrambled_colour``: name, agreement)."""
     from mono_map.depth.inference import DepthPredictor
     from mono_map.eval.depth_evaluation import evaluate_model, scrambled_colour
 
-    predictors = [(m, DepthPredictor.load(m, fast=fast)) for m in models]   # a bad checkpoint fails first
+    predictors = [(m, DepthPredictor.load(m, fast=fast, flip=flip)) for m in models]   # a bad checkpoint fails first
     rows = []
     for src in sources:
         frames = src.load()
@@ -122,7 +122,7 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mono_map.cli.options import add_model, add_out, add_threads
+    from mono_map.cli.options import add_flip, add_model, add_out, add_threads
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_model(ap, repeat=True)
@@ -133,6 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     add_out(ap, default="outputs/eval_real")
     add_threads(ap, default=1)
     ap.add_argument("--fast", action="store_true", help="statistics at the decoder's stride 4")
+    add_flip(ap)
     args = ap.parse_args(argv)
 
     import torch
@@ -148,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
             if not sources:
                 raise MonoMapError(f"--only: no source named {args.only}")
         out = prepare_output_dir(args.out)
-        rows = evaluate_sources(args.model or ["binary"], sources, fast=args.fast)
+        rows = evaluate_sources(args.model or ["binary"], sources, fast=args.fast, flip=args.flip)
     except MonoMapError as exc:
         print(f"eval_real: error: {exc}", file=sys.stderr)
         return 2

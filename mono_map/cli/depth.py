@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from mono_map.cli.options import (add_data_root, add_frames, add_model, add_out, add_precision, add_seq,
+from mono_map.cli.options import (add_data_root, add_flip, add_frames, add_model, add_out, add_precision, add_seq,
                                   add_threads, check_threads)
 from mono_map.errors import MonoMapError
 from mono_map.frames import FrameSelection, parse_frames
@@ -36,6 +36,7 @@ def register(subparsers) -> None:
     add_out(p, default="outputs/predict", help="output folder")
     p.add_argument("--npz", action="store_true", help="also save the K×h×w distributions (float16, model resolution)")
     p.add_argument("--space", choices=("log", "linear"), default="log", help="expectation space")
+    add_flip(p)
     p.set_defaults(func=run_predict)
 
     p = subparsers.add_parser("eval-depth", help="depth metrics, uncertainty AUCs, oracle hypotheses of the heads")
@@ -58,6 +59,7 @@ def register(subparsers) -> None:
     add_out(p, default="outputs/eval_depth", help="output folder (JSON, Markdown, PNG)")
     add_threads(p, default=2)
     p.add_argument("--fast", action="store_true", help="distribution statistics at the decoder's stride 4, then up-sampled")
+    add_flip(p)
     p.set_defaults(func=run_eval_depth)
 
     from mono_map.depth.adapt import HINT_LOSSES, STEREO_MODES, AdaptConfig
@@ -156,7 +158,7 @@ def run_predict(args) -> int:
     if args.images and not Path(args.images).is_dir():
         raise MonoMapError(f"--images: {args.images}: no such folder")
     out = prepare_output_dir(args.out)
-    pred = DepthPredictor.load(args.model, space=args.space)
+    pred = DepthPredictor.load(args.model, space=args.space, flip=args.flip)
     if args.seq:
         from mono_map.data.prepare import prepare_sequence
 
@@ -249,7 +251,7 @@ def run_eval_depth(args) -> int:
     predictors = {}
     shipped = shipped_names()
     for m in _models(args):
-        p = DepthPredictor.load(m, fast=args.fast)
+        p = DepthPredictor.load(m, fast=args.fast, flip=args.flip)
         key = m if m in shipped else p.training.get("name") or p.head   # the run's name (e.g. v2-binary-k32)
         key = key if key not in predictors else f"{key} ({m})"
         predictors[key] = p

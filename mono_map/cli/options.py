@@ -76,6 +76,13 @@ def add_precision(p, *, help: str = "network precision (default: bf16 on CPUs wi
     p.add_argument("--precision", choices=("fp32", "bf16"), default=None, help=help)
 
 
+def add_flip(p) -> None:
+    """``--flip``: each image predicted mirrored too, the two outputs combined as samples (twice the network time)."""
+    p.add_argument("--flip", action="store_true",
+                   help="also predict each image mirrored and combine both (bin heads: the mixture of the two "
+                        "distributions; monodepth2's post-processing for distributions); twice the network time")
+
+
 def add_octomap(p: argparse.ArgumentParser) -> None:
     """The OctoMap settings (``--res``, ``--max-range``, ``--prob-hit``, ``--prob-miss``, ``--clamp-*``),
     defaults from :class:`mono_map.config.OctoMapConfig`; read back with :func:`octomap_config`."""

@@ -241,7 +241,8 @@ class DepthPredictor:
     """A loaded depth model. ``space`` picks the expectation: "log" exp(Σp log d) or "linear" Σp d."""
 
     def __init__(self, model: DepthNet, checkpoint: Path | None = None, device: str = "cpu",
-                 space: str = "log", training: dict | None = None, fast: bool = False, precision: str = "fp32"):
+                 space: str = "log", training: dict | None = None, fast: bool = False, precision: str = "fp32",
+                 flip: bool = False):
         self.model = model.eval()
         self.cfg = model.cfg
         self.bins = model.cfg.bins
@@ -253,16 +254,19 @@ class DepthPredictor:
         if precision not in ("fp32", "bf16"):
             raise MonoMapError(f"precision: must be 'fp32' or 'bf16', got {precision!r}")
         self.precision = precision  # "bf16": bfloat16 autocast of the network (statistics in fp32)
+        # flip: the mirrored image too, its outputs mirrored back and combined with the image's as two samples
+        # (bin heads: the mixture of both distributions; monodepth2's post-processing, for distributions)
+        self.flip = bool(flip)
         # channels_last: the network's convolutions ~18 % faster on CPU in fp32 too (docs/model.md)
         self.model = self.model.to(memory_format=torch.channels_last)
 
     @classmethod
     def load(cls, checkpoint: str | os.PathLike | None = None, device: str = "cpu",
-             space: str = "log", fast: bool = False, precision: str = "fp32") -> "DepthPredictor":
+             space: str = "log", fast: bool = False, precision: str = "fp32", flip: bool = False) -> "DepthPredictor":
         """None -> the shipped binary checkpoint; a bare head name (e.g. "softmax") -> its shipped checkpoint."""
         checkpoint = resolve_checkpoint(checkpoint)
         model, payload = load_checkpoint(checkpoint, device)
-        return cls(model, Path(checkpoint), device, space, payload.get("training"), fast, precision)
+        return cls(model, Path(checkpoint), device, space, payload.get("training"), fast, precision, flip)
 
     @property
     def head(self) -> str:
@@ -294,6 +298,15 @@ class DepthPredictor:
         return self._network(x, mc, low), low
 
     def _network(self, x: torch.Tensor, mc: int, low: bool) -> torch.Tensor:
+        """Raw outputs (B,C,H',W'), or (S,B,C,H',W') samples: MC dropout's and/or the mirrored image's (``flip``:
+        the whole padded input mirrored, its outputs mirrored back; exact at stride 4 too, the input width being a
+        multiple of 4)."""
+        if not self.flip:
+            return self._pass(x, mc, low)
+        a, b = self._pass(x, mc, low), self._pass(x.flip(-1), mc, low).flip(-1)
+        return torch.cat([a, b]) if mc > 0 else torch.stack([a, b])
+
+    def _pass(self, x: torch.Tensor, mc: int, low: bool) -> torch.Tensor:
         x = x.contiguous(memory_format=torch.channels_last)
         if self.precision == "bf16":
             with torch.autocast(x.device.type, dtype=torch.bfloat16):
