@@ -41,3 +41,27 @@ def test_flip_with_a_gaussian_head_and_padding_runs(tmp_path):
     img = np.random.default_rng(1).uniform(0, 255, (50, 190, 3)).astype(np.uint8)   # padded to 64×192
     p = DepthPredictor.load(ckpt, flip=True).predict(img)
     assert p.depth.shape == (50, 190) and np.isfinite(p.depth).all() and np.isfinite(p.entropy).all()
+
+
+def test_build_and_eval_take_flip_and_key_it(tiny_root, tmp_path, capsys):
+    import json
+
+    from mono_map.cli import main as cli_main
+
+    ckpt = write_tiny_checkpoint(tmp_path / "tinynet.pt", beyond=True)
+    common = ["--seq", "tiny", "--data-root", str(tiny_root), "--out", str(tmp_path / "m"), "--frames", "0:3",
+              "--model", str(ckpt), "--keep", "0.8"]
+    for extra in ([], ["--flip"]):
+        assert cli_main(["build", *common, *extra]) == 0
+    maps = sorted((tmp_path / "m").rglob("mono-keep0.8*.bt"), key=lambda p: "flip" in p.stem)
+    assert len(maps) == 2 and [("flip" in p.stem) for p in maps] == [False, True]
+    keys = [json.loads(p.with_suffix(".json").read_text())["job"] for p in maps]
+    assert [k.get("flip") for k in keys] == [None, True]      # maps made before --flip keep their keys
+    assert cli_main(["eval", *common, "--flip", "--json", str(tmp_path / "e.json")]) == 0
+    assert "_flip_" in json.loads((tmp_path / "e.json").read_text())["map_path"]
+    for bad in (["--model", "oracle"], ["--source", "lidar"]):
+        capsys.readouterr()
+        argv = ["build", "--seq", "tiny", "--data-root", str(tiny_root), "--out", str(tmp_path / "b"), "--flip", *bad]
+        assert cli_main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--flip" in err[0], err

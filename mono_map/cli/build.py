@@ -5,7 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mono_map.cli.options import (add_data_root, add_frames, add_integration, add_model, add_octomap, add_out,
+from mono_map.cli.options import (add_data_root, add_flip, add_frames, add_integration, add_model, add_octomap, add_out,
+                                  check_flip,
                                   add_seq, distribution_config, fused_config, octomap_config)
 from mono_map.io import prepare_output_dir
 from mono_map.mapping.jobs import MapJob
@@ -33,6 +34,7 @@ def register(subparsers) -> None:
     b.add_argument("--stride", type=int, default=1, help="use every S-th pixel row and column (default 1)")
     add_frames(b, says=f"the first {DEFAULT_FRAMES} frames")
     add_model(b, oracle=True)
+    add_flip(b)
     add_data_root(b)
     add_out(b, help="output directory (default outputs/seq<SEQ>)")
     b.add_argument("--name", default=None, help="output file stem (default from source/keep/res)")
@@ -74,6 +76,7 @@ def run_build(args) -> int:
     source = source_of(args.source)
     dcfg = distribution_config(args)
     fcfg = fused_config(args)
+    check_flip(args)
     if source.predicted:
         from mono_map.depth.inference import checkpoint_path   # torch: only for a predicted source
 
@@ -98,7 +101,7 @@ def run_build(args) -> int:
     if source.predicted:
         from mono_map.depth.inference import model_digest
 
-        predictor = load_predictor(args.model)  # a bad checkpoint fails here
+        predictor = load_predictor(args.model, flip=args.flip)  # a bad checkpoint fails here
         digest = model_digest(args.model)
     # then the data
     stereo = bool(fcfg.stereo) and integration_of(args.integrate, source).fused   # a synthetic one renders image_3
@@ -108,7 +111,7 @@ def run_build(args) -> int:
         raise MonoMapError(f"--source depth-gt: {seq.depth_dir} has no ground-truth depth for frame "
                            f"{frames[0]} (a synthetic sequence has it)")
     job = MapJob.of(seq, args.source, frames, keep=args.keep, integrate=args.integrate, distribution=dcfg,
-                    octomap=cfg, stride=args.stride, model=args.model, digest=digest, fused=fcfg)
+                    octomap=cfg, stride=args.stride, model=args.model, digest=digest, fused=fcfg, flip=args.flip)
     check_reach(seq, job)
     check_memory(seq, job)
     how = ""

@@ -6,7 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from mono_map.cli.build import DEFAULT_FRAMES
-from mono_map.cli.options import (add_data_root, add_frames, add_integration, add_model, add_octomap, add_out,
+from mono_map.cli.options import (add_data_root, add_flip, add_frames, add_integration, add_model, add_octomap, add_out,
+                                  check_flip,
                                   add_seq, distribution_config, fused_config, octomap_config)
 from mono_map.io import prepare_output_dir
 from mono_map.mapping.jobs import MapJob, read_map_sidecar, reusable
@@ -38,6 +39,7 @@ def register(subparsers) -> None:
     add_frames(e, says=f"the first {DEFAULT_FRAMES}", what="frames for built maps")
     e.add_argument("--stride", type=int, default=1, help="pixel stride for built mono maps")
     add_model(e, oracle=True, help="depth checkpoint for built mono maps (default: the shipped binary model)")
+    add_flip(e)
     add_data_root(e)
     add_out(e, help="directory for cached maps and the table (default outputs/seq<SEQ>)")
     e.add_argument("--json", default=None, help="write the metrics JSON here")
@@ -98,6 +100,7 @@ def check_eval_options(args):
     cfg = octomap_config(args)
     dcfg = distribution_config(args)
     fused_config(args)
+    check_flip(args)
     selection = parse_frames(args.frames, default=first_frames(DEFAULT_FRAMES))
     if args.stride < 1:
         raise MonoMapError(f"--stride: must be a positive integer, got {args.stride}")
@@ -122,7 +125,7 @@ def default_map_path(args, cfg, dcfg, selection) -> Path:
     seq = prepare_sequence(args.data_root, args.seq, selection, render=False)
     frames = selection.resolve(len(seq))
     job = MapJob.of(seq, "mono", frames, keep=args.keep, integrate=args.integrate, distribution=dcfg, octomap=cfg,
-                    stride=args.stride, model=args.model, fused=fused_config(args))
+                    stride=args.stride, model=args.model, fused=fused_config(args), flip=args.flip)
     path = job.path(sequence_output_dir(args.out, args.seq))
     how = f"--keep {args.keep:g}" if job.integration.end_points else f"--integrate {args.integrate}"
     if not path.is_file():
@@ -166,7 +169,7 @@ def run_eval(args) -> int:
         return run_table(TableJob(seq=args.seq, data_root=args.data_root, frames=selection, out=args.out,
                                   keeps=parse_keeps(args.keeps), stride=args.stride, model=args.model,
                                   octomap=cfg, reference=args.reference, paper_only=args.paper_only,
-                                  distribution=dcfg, fused=fused_config(args)))
+                                  distribution=dcfg, fused=fused_config(args), flip=args.flip))
     from mono_map.data.prepare import prepare_sequence
     from mono_map.eval.map_metrics import evaluate_map
     from mono_map.mapping.octree import load_tree

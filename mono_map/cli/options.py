@@ -83,6 +83,15 @@ def add_flip(p) -> None:
                         "distributions; monodepth2's post-processing for distributions); twice the network time")
 
 
+def check_flip(args) -> None:
+    """``--flip`` needs a network: refused (one line) with ``--model oracle`` or a source that predicts nothing."""
+    from mono_map.errors import MonoMapError
+
+    if getattr(args, "flip", False) and (args.model == "oracle" or getattr(args, "source", "mono") != "mono"):
+        raise MonoMapError("--flip: mirrors a depth network's input; the oracle and the LiDAR / depth-gt sources "
+                           "have none")
+
+
 def add_octomap(p: argparse.ArgumentParser) -> None:
     """The OctoMap settings (``--res``, ``--max-range``, ``--prob-hit``, ``--prob-miss``, ``--clamp-*``),
     defaults from :class:`mono_map.config.OctoMapConfig`; read back with :func:`octomap_config`."""

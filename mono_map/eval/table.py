@@ -36,7 +36,7 @@ class TableJob:
 
     paper_only: only the paper's rows (LiDAR-FOV, keep sweep), no depth-gt, distribution or fused map or
     calibration; distribution: the settings of the distribution-integrated row (and the fused row's free
-    space); fused: the fused row's surface settings."""
+    space); fused: the fused row's surface settings; flip: every mono map's images predicted mirrored too."""
 
     seq: str
     data_root: str | None
@@ -50,6 +50,7 @@ class TableJob:
     paper_only: bool = False
     distribution: DistributionConfig = field(default_factory=DistributionConfig)
     fused: FusedConfig = field(default_factory=FusedConfig)
+    flip: bool = False
 
 
 @dataclass
@@ -131,20 +132,21 @@ def run_table(job: TableJob, pictures=None) -> Table:
     keeps = job.keeps
     out_dir = prepare_output_dir(sequence_output_dir(job.out, job.seq))
     digest = model_digest(job.model)
-    predictor = load_predictor(job.model)  # a bad checkpoint is refused before any data is read
+    predictor = load_predictor(job.model, flip=job.flip)  # a bad checkpoint is refused before any data is read
     seq = prepare_sequence(job.data_root, job.seq, job.frames, stereo=bool(job.fused.stereo))   # synthetic: image_3 too
     frames = job.frames.resolve(len(seq))
     desc = job.frames.describe(frames)
     tag = frames_tag(frames)
     print(f"mono-map eval --table: sequence {job.seq}, {desc}, {cfg.resolution:g} m cells, model "
-          f"{job.model or 'shipped binary checkpoint'}")
+          f"{job.model or 'shipped binary checkpoint'}" + (", each image mirrored too (--flip)" if job.flip else ""))
     extended = not job.paper_only
     calibrated = CALIBRATED if extended else ()
 
     def job_of(source, keep=1.0, stride=1, model=None, integrate="keep"):
         mono = source_of(source).predicted
         return MapJob.of(seq, source, frames, keep=keep, integrate=integrate, distribution=dcfg, octomap=cfg,
-                         stride=stride, model=model, digest=digest if mono else None, fused=job.fused)
+                         stride=stride, model=model, digest=digest if mono else None, fused=job.fused,
+                         flip=job.flip and mono)
 
     fov = job_of("lidar-fov")
     entries = [("LiDAR-FOV", "lidar-fov", None, fov)]
@@ -200,10 +202,11 @@ def run_table(job: TableJob, pictures=None) -> Table:
             row["ece"] = cal["ece"]
         rows.append(row)
 
-    md = table_markdown(rows, job.seq, desc, cfg, job.model, reference, dcfg if extended else None,
+    md = table_markdown(rows, job.seq, desc, cfg, f"{job.model or 'shipped binary'} (--flip)" if job.flip else job.model,
+                        reference, dcfg if extended else None,
                         job.fused if extended else None)
     stem = (f"table_{tag}_res{cfg.resolution:g}" + (f"_model-{Path(job.model).stem}" if job.model else "")
-            + ("_ref-lidar" if reference == "lidar" else ""))
+            + ("_flip" if job.flip else "") + ("_ref-lidar" if reference == "lidar" else ""))
     table = Table(rows=rows, markdown=md, out_dir=out_dir, stem=stem, reference=reference, reliability=reliability,
                   topdown=[(label, pics[label]) for label in pictured], extended=extended)
     # the table, its JSON and its pictures are published as one set: all of them or (a failure, a signal) none

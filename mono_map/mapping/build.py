@@ -337,7 +337,7 @@ def make_builder(seq, job, predictor=None, observers: Sequence[Callable] = (), *
         check_keep(job.keep)
     rank = check_rank(rank)
     if job.kind.predicted and predictor is None:
-        predictor = load_predictor(job.model)
+        predictor = load_predictor(job.model, flip=job.flip)
     if depth_range is None:
         bins = getattr(predictor, "bins", None) or DepthBins()
         depth_range = (float(bins.min_depth), float(bins.max_depth))

@@ -16,10 +16,10 @@ import numpy as np
 from mono_map.depth.bins import DepthBins
 
 
-def load_predictor(model: str | None = None):
+def load_predictor(model: str | None = None, flip: bool = False):
     """The predictor a mono map is built with: ``"oracle"`` → the noisy ground-truth stand-in, else
     ``DepthPredictor.load(model, fast=True, precision=default_precision())`` (None → shipped binary
-    checkpoint). The fast path computes the per-pixel statistics at the decoder's stride 4 and
+    checkpoint; ``flip``: each image predicted mirrored too). The fast path computes the per-pixel statistics at the decoder's stride 4 and
     up-samples them (~4x less CPU; eval-depth measures no accuracy loss, see docs/model.md); bf16 on
     CPUs with AMX (~2x faster network)."""
     if model == "oracle":
@@ -28,7 +28,7 @@ def load_predictor(model: str | None = None):
         return NoisyGroundTruthPredictor()
     from mono_map.depth.inference import DepthPredictor, default_precision
 
-    return DepthPredictor.load(model, fast=True, precision=default_precision())
+    return DepthPredictor.load(model, fast=True, precision=default_precision(), flip=flip)
 
 
 def run_predictor(predictor, seq, i: int, image: np.ndarray, with_probs: bool = False, probs_step: int = 1):

@@ -61,7 +61,8 @@ class MapJob:
 
     model: ``--model`` as given (None: the shipped checkpoint; names the file); digest: its
     checkpoint's sha256 (first 16 hex, or 'oracle'); precision: the inference precision of a mono
-    build (:func:`mono_map.depth.inference.default_precision`)."""
+    build (:func:`mono_map.depth.inference.default_precision`); flip: each image predicted mirrored too
+    (``--flip``)."""
 
     sequence: str | None
     data_root: str | None
@@ -78,12 +79,13 @@ class MapJob:
     synthetic: tuple[tuple[str, object], ...] = ()
     data: tuple[tuple[str, str], ...] = ()   # what the frames hold (mono_map.data.fingerprint): part -> hash
     fused: FusedConfig = field(default_factory=FusedConfig)
+    flip: bool = False
 
     @classmethod
     def of(cls, seq, source: str, frames, *, keep: float = 1.0, integrate: str = "keep",
            distribution: DistributionConfig | None = None, octomap: OctoMapConfig | None = None,
            stride: int = 1, model: str | None = None, digest: str | None = None,
-           fused: FusedConfig | None = None) -> "MapJob":
+           fused: FusedConfig | None = None, flip: bool = False) -> "MapJob":
         """The job of building ``frames`` of the open sequence ``seq`` (its root, name and synthetic
         marker are read from it); ``digest`` defaults to :func:`model_digest` of ``model`` (mono only)."""
         mono = source_of(source).predicted
@@ -102,7 +104,7 @@ class MapJob:
                    stride=int(stride), model=model if mono else None,
                    digest=digest if mono else None, precision=precision,
                    synthetic=synthetic_marker(seq), data=data_fingerprint(seq, source, frames),
-                   fused=fused or FusedConfig())
+                   fused=fused or FusedConfig(), flip=bool(flip) and mono and model != "oracle")
 
     @classmethod
     def spec(cls, source: str = "mono", frames=(), *, keep: float = DEFAULT_KEEP, integrate: str = "keep",
@@ -154,7 +156,8 @@ class MapJob:
                 "source": self.source, "keep": self.keep if self.mono and not self.distributional else None,
                 "stride": self.stride if camera else None, "model": self.digest if self.mono else None,
                 "frames": frames_tag(self.frames), "octomap": dataclasses.asdict(self.octomap),
-                "integration": integration, "precision": self.precision}
+                "integration": integration, "precision": self.precision,
+                **({"flip": True} if self.flip else {})}    # the maps made before --flip keep their keys
 
     def hash(self) -> str:
         """sha256 (first 16 hex) of :meth:`key`: equal for two jobs iff they make the same map."""
@@ -178,6 +181,8 @@ class MapJob:
             parts = [self.source if not self.mono else f"mono-keep{self.keep:g}"]
         if self.mono and self.model:
             parts.append("model-" + Path(str(self.model)).stem)
+        if self.flip:
+            parts.append("flip")
         if self.kind.camera and self.stride != 1:
             parts.append(f"stride{self.stride}")
         cfg, d = self.octomap, OctoMapConfig()

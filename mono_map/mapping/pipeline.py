@@ -104,15 +104,15 @@ def make_builders(seq, maps: Sequence[dict]) -> list[MapBuilder]:
     arguments: ``job``, ``predictor``, ``observers``, options); mono maps that name the same model (None:
     the shipped one) and pass no predictor share one loaded predictor, so :func:`run_builders` predicts each
     frame once."""
-    loaded: dict[str | None, object] = {}
+    loaded: dict[tuple, object] = {}
     builders = []
     for kw in maps:
         kw = dict(kw)
         job = kw.pop("job")
         if job.kind.predicted and kw.get("predictor") is None:
-            if job.model not in loaded:
-                loaded[job.model] = load_predictor(job.model)
-            kw["predictor"] = loaded[job.model]
+            if (job.model, job.flip) not in loaded:
+                loaded[job.model, job.flip] = load_predictor(job.model, flip=job.flip)
+            kw["predictor"] = loaded[job.model, job.flip]
         builders.append(make_builder(seq, job, **kw))
     return builders
 
