@@ -17,7 +17,7 @@ from mono_map.errors import MonoMapError
 from test_multiview import BINS, WALL, K, WallSeq, flat_prediction, texture
 from tiny_net import write_tiny_checkpoint
 
-BASELINE = 0.54      # metres, KITTI's colour cameras
+BASELINE = 0.53      # metres between KITTI's colour cameras
 
 
 class StereoWallSeq(WallSeq):

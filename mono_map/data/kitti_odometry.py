@@ -39,7 +39,8 @@ class Calibration:
     K2: 3×3 intrinsics of image_2 (pixels).
     T_cam0_velo: Tr, velodyne → cam0.  T_cam2_cam0: [I | t2] with t2 = K2⁻¹·P2[:, 3]
     (≈ +0.06 m along x).  T_cam2_velo = T_cam2_cam0 · T_cam0_velo.
-    P3: 3×4 rectified projection of image_3, the right colour camera (≈ −0.48 m along x from cam0), or None.
+    P3: 3×4 rectified projection of image_3, the right colour camera (t3 = K⁻¹·P3[:, 3] ≈ −0.47 m along x: its
+    centre 0.47 m right of cam0's, 0.53 m right of image_2's), or None.
     """
 
     P2: np.ndarray

@@ -31,8 +31,8 @@ import numpy as np
 from mono_map.depth.sources import choose_sources
 from mono_map.errors import MonoMapError
 
-HINT_LOSSES = ("log", "head")
-STEREO_MODES = ("auto", "on", "off")   # the right colour camera (image_3) as a source: if every frame has it / required / never   # Depth Hints' term: on the expected depth (log L1) or the head's own loss on the bins
+HINT_LOSSES = ("log", "head")   # Depth Hints' term: on the expected depth (log L1) or the head's own loss on the bins
+STEREO_MODES = ("auto", "on", "off")   # the right colour camera (image_3): if every frame has it / required / never
 
 ADAPT_VERSION = 1
 DEFAULT_FRAMES = 500   # frames adapted on unless told (build's default too); a synthetic sequence is rendered that far
@@ -68,7 +68,7 @@ class AdaptConfig:
     hint_loss: str = "log"           # "log": |log d − log hint| on the expected depth; "head": the head's training loss
     hint_contrast: float = 0.1       # a hint only where the sweep's mean cost exceeds its best by more than this
     # the same frame's right colour camera (image_3) as one more source of every target (monodepth2's "MS"): a
-    # 0.54 m baseline at the same instant, so it also sees a stopped car's frames and things moving with the car
+    # 0.53 m baseline at the same instant, so it also sees a stopped car's frames and things moving with the car
     stereo: str = "auto"
 
     def validate(self) -> None:

@@ -39,7 +39,7 @@ class MultiviewConfig:
     temperature: τ of the likelihood exp(−cost/τ) (cost: SSIM+L1 error, 0–1); prior_power: a of p^a;
     scale: the cost is computed at 1/scale of the image resolution; window: the cost is averaged over
     window×window pixels of that grid (odd; 1 = per pixel); stereo: the frame's own right colour camera
-    (image_3, same instant, KITTI's 0.54 m baseline) is one more source."""
+    (image_3, same instant, 0.53 m right of image_2) is one more source."""
 
     sources: int = 2
     min_baseline: float = 0.3
