@@ -77,10 +77,10 @@ def add_precision(p, *, help: str = "network precision (default: bf16 on CPUs wi
 
 
 def add_flip(p) -> None:
-    """``--flip``: each image predicted mirrored too, the two outputs combined as samples (twice the network time)."""
+    """``--flip``: each image predicted mirrored too, the two outputs combined as samples (1.7–2.4× the prediction time)."""
     p.add_argument("--flip", action="store_true",
                    help="also predict each image mirrored and combine both (bin heads: the mixture of the two "
-                        "distributions; monodepth2's post-processing for distributions); twice the network time")
+                        "distributions; monodepth2's post-processing for distributions); 1.7-2.4x the prediction time")
 
 
 def check_flip(args) -> None:
