@@ -10,8 +10,8 @@ import pytest
 from mono_map.data.synth import materials as M
 from mono_map.data.synth import generate_sequence, load_recipe
 from mono_map.data.synth.placement import LARGE
-from mono_map.data.synth.randomize import (TownSpec, randomized_recipe, traffic_towns, training_towns,
-                                           validation_town)
+from mono_map.data.synth.randomize import (TownSpec, detailed_towns, jam_towns, randomized_recipe, traffic_towns,
+                                           training_towns, validation_town)
 from mono_map.data.synth.recipe import TrafficParams
 from mono_map.data.synth.town import build_town
 from mono_map.data.synth.traffic import (EGO_AHEAD, EGO_BEHIND, EGO_HALF_WIDTH, LANE_CLEARANCE, clear_frames,
@@ -247,16 +247,35 @@ def test_traffic_towns_are_a_family_of_their_own(tmp_path):
     assert render_town(tmp_path, spec) == 0                   # complete: nothing to do
 
 
+def test_jam_towns_are_a_family_of_their_own():
+    """Traffic jams (j): the next lane nearly full, large vehicles, a vehicle close ahead, painted vehicles; other
+    seeds than every other family; the other families keep their specs (and so their caches and hashes)."""
+    jams, old = jam_towns(6), training_towns()[:6]
+    assert [t.name for t in jams] == ["j" + t.name[1:] for t in old]
+    others = training_towns() + [validation_town()] + traffic_towns(6) + traffic_towns(6, kerb_trucks=True)
+    assert not {t.seed for t in jams} & {t.seed for t in others}
+    for t in jams:
+        r = randomized_recipe(t)
+        tp = r.traffic
+        assert 0.85 <= tp.adjacent_density <= 1 and 12 <= tp.ahead_spacing <= 25 and tp.large_fraction >= 0.5
+        assert tp.kerb_large_density >= 0.4 and r.cars.detail > 0
+        assert t.to_dict()["jam"] is True
+    for t in others + detailed_towns(traffic_towns(6)):
+        assert "jam" not in t.to_dict()
+    assert all(randomized_recipe(t).content_hash() == H_TOWN_HASHES[t.name] for t in traffic_towns(6))
+
+
 def test_rectangles_overlap():
     sq = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], float)
     others = np.stack([sq + [1.9, 0], sq + [2.1, 0], sq * 0.2, sq @ np.array([[0.7071, 0.7071], [-0.7071, 0.7071]]) + [2.3, 2.3]])
     assert rectangles_overlap(sq, others).tolist() == [True, False, True, False]
 
 
-def test_render_trainset_refuses_a_bad_traffic_count(tmp_path, capsys):
+@pytest.mark.parametrize("option", ["--traffic", "--jams"])
+def test_render_trainset_refuses_a_bad_traffic_count(tmp_path, capsys, option):
     from mono_map.cli import main
 
-    assert main(["render-trainset", "--root", str(tmp_path / "ts"), "--traffic", "-1"]) == 2
+    assert main(["render-trainset", "--root", str(tmp_path / "ts"), option, "-1"]) == 2
     err = capsys.readouterr().err
-    assert "--traffic" in err and "Traceback" not in err
+    assert option in err and "Traceback" not in err
     assert not (tmp_path / "ts").exists()

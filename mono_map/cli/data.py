@@ -44,6 +44,9 @@ def register(subparsers) -> None:
     p.add_argument("--kerb-trucks", type=int, default=0,
                    help="also the first N towns with lane traffic and large vehicles parked at the kerbs too "
                         "(k01_0a, ...; default 0)")
+    p.add_argument("--jams", type=int, default=0,
+                   help="also the first N traffic-jam towns: the next lane full, large vehicles beside and at the kerbs, a "
+                        "vehicle close ahead, painted vehicle details (j01_0a, ...; default 0)")
     p.add_argument("--detailed", action="store_true",
                    help="also the twins of the training, traffic and kerb-truck towns asked for with painted details on "
                         "their vehicles (lights, plates, stripes, lettering, grime): p01_0a, d01_0a, v01_0a, ...")
@@ -102,7 +105,7 @@ def run_synth(args: argparse.Namespace) -> int:
 def run_render_trainset(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from mono_map.data.synth.randomize import detailed_towns, traffic_towns, training_towns, validation_town
+    from mono_map.data.synth.randomize import detailed_towns, jam_towns, traffic_towns, training_towns, validation_town
     from mono_map.data.synth.trainset import default_root, render_trainset
     from mono_map.errors import MonoMapError
 
@@ -115,6 +118,8 @@ def run_render_trainset(args: argparse.Namespace) -> int:
         raise MonoMapError(f"--traffic: must be 0 (none) to {len(specs)}, got {args.traffic}")
     if not 0 <= args.kerb_trucks <= len(specs):
         raise MonoMapError(f"--kerb-trucks: must be 0 (none) to {len(specs)}, got {args.kerb_trucks}")
+    if not 0 <= args.jams <= len(specs):
+        raise MonoMapError(f"--jams: must be 0 (none) to {len(specs)}, got {args.jams}")
     root = Path(args.root).expanduser() if args.root else default_root()
     if root.exists() and not root.is_dir():
         raise MonoMapError(f"--root: {root}: not a directory")
@@ -122,7 +127,7 @@ def run_render_trainset(args: argparse.Namespace) -> int:
         raise MonoMapError(f"--root: {root}: not writable")
     towns = (specs[:args.towns] if args.towns else specs) + traffic_towns(args.traffic) \
         + traffic_towns(args.kerb_trucks, kerb_trucks=True)
-    specs = [validation_town()] + towns + (detailed_towns(towns) if args.detailed else [])
+    specs = [validation_town()] + towns + (detailed_towns(towns) if args.detailed else []) + jam_towns(args.jams)
     print(f"rendering {len(specs)} towns ({sum(s.frames for s in specs)} frames) into {root}", file=sys.stderr)
     out = render_trainset(root, specs, workers=args.workers, log=lambda m: print(m, file=sys.stderr, flush=True))
     print(f"done: {out['frames_rendered']} frames in {out['seconds'] / 60:.1f} min", file=sys.stderr)

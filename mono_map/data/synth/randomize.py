@@ -33,12 +33,13 @@ class TownSpec:
     traffic: bool = False       # vehicles in the driving lanes and large vehicles (the "h" family, issue 31)
     kerb_trucks: bool = False   # with traffic: large vehicles parked at the kerbs too (the "k" family)
     vehicle_detail: bool = False  # vehicles with painted details: the twins of the t, h, k towns (p, d, v families)
+    jam: bool = False           # with traffic: a traffic jam, lanes and kerbs full, large vehicles close (the "j" family)
 
     def to_dict(self) -> dict:
-        """The spec as stored in the cache; ``traffic``/``kerb_trucks``/``vehicle_detail`` only when set, so older
-        towns keep their identity."""
+        """The spec as stored in the cache; ``traffic``/``kerb_trucks``/``vehicle_detail``/``jam`` only when set, so
+        older towns keep their identity."""
         d = asdict(self)
-        for key in ("traffic", "kerb_trucks", "vehicle_detail"):
+        for key in ("traffic", "kerb_trucks", "vehicle_detail", "jam"):
             if not d[key]:
                 d.pop(key)
         return d
@@ -79,6 +80,11 @@ def randomized_recipe(spec: TownSpec) -> Recipe:
                                 ahead_spacing=float(t.uniform(35.0, 90.0)),
                                 large_fraction=float(t.uniform(0.3, 0.7)), van_fraction=float(t.uniform(0.1, 0.35)),
                                 kerb_large_density=kerb)
+        if spec.jam:                         # real01's scene: the next lane full, large vehicles beside, a car close ahead
+            j = np.random.default_rng([spec.seed, 133])
+            traffic = TrafficParams(adjacent_density=float(j.uniform(0.85, 1.0)), ahead_spacing=float(j.uniform(12.0, 25.0)),
+                                    large_fraction=float(j.uniform(0.5, 0.9)), van_fraction=float(j.uniform(0.2, 0.4)),
+                                    kerb_large_density=float(j.uniform(0.4, 0.9)))
     return Recipe(
         name=spec.name, seed=spec.seed, frames=spec.frames, trajectory=spec.trajectory,
         pose_stride=spec.pose_stride, first_pose=spec.first_pose,
@@ -213,6 +219,19 @@ def traffic_towns(n: int = 4, frames: int = 250, seed: int = 2026, kerb_trucks: 
         out.append(replace(s, name=prefix + s.name[1:], frames=min(frames, s.frames), seed=s.seed + offset,
                            traffic=True, kerb_trucks=kerb_trucks))
     return out
+
+
+JAM_PREFIX = "j"
+
+
+def jam_towns(n: int = 6, frames: int = 250, seed: int = 2026) -> list[TownSpec]:
+    """The first ``n`` windows of :func:`training_towns` as traffic jams (issue 31: real01's 1-5 m band holds 24 %
+    of its LiDAR pixels, the training towns' 1-15 %): the adjacent lane nearly full, half or more of the lane
+    vehicles large, a vehicle 12-25 m apart in the camera's own lane, large vehicles at the kerbs; painted vehicle
+    details as the p, d, v families. Named ``j…`` (``t01_0a`` → ``j01_0a``), other seeds; the frames whose camera
+    would be inside a vehicle are not rendered."""
+    return [replace(s, name=JAM_PREFIX + s.name[1:], frames=min(frames, s.frames), seed=s.seed + 700_000,
+                    traffic=True, kerb_trucks=True, vehicle_detail=True, jam=True) for s in training_towns(seed)[:n]]
 
 
 def detailed_towns(specs: list[TownSpec]) -> list[TownSpec]:
