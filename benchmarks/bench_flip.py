@@ -1,7 +1,7 @@
 """What ``--flip`` costs: the shipped checkpoint's predictions of a KITTI-sized image with and without the mirrored
 second pass, back to back in one process, repeated; min / median / max of each and of their ratio.
 
-    .venv/bin/python benchmarks/bench_flip.py [--model binary] [--repeats 5] [--frames 10] [--threads 2] [--fast]
+    .venv/bin/python benchmarks/bench_flip.py [--model binary] [--repeats 5] [--per-run 10] [--threads 2] [--fast]
 
 ``--fast``: statistics at the decoder's stride 4 (the map builds' predictor). Run it on an idle machine.
 """
@@ -31,7 +31,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_model(ap)
     ap.add_argument("--repeats", type=int, default=5, help="alternating timed runs of each (default 5)")
-    ap.add_argument("--frames", type=int, default=10, help="predictions per timed run (default 10)")
+    ap.add_argument("--per-run", type=int, default=10, help="predictions per timed run (default 10)")
     ap.add_argument("--fast", action="store_true", help="statistics at stride 4 (as map builds predict)")
     add_threads(ap, default=2)
     args = ap.parse_args()
@@ -44,15 +44,15 @@ def main() -> None:
         p.predict(image)
     a, b = [], []
     for _ in range(args.repeats):
-        a.append(per_frame_ms(plain, image, args.frames))
-        b.append(per_frame_ms(flip, image, args.frames))
+        a.append(per_frame_ms(plain, image, args.per_run))
+        b.append(per_frame_ms(flip, image, args.per_run))
     ratio = np.array(b) / np.array(a)
 
     def mmm(x):
         return [round(float(np.min(x)), 2), round(float(np.median(x)), 2), round(float(np.max(x)), 2)]
 
     print(json.dumps({"model": args.model or "binary", "precision": precision, "threads": args.threads,
-                      "fast": args.fast, "repeats": args.repeats, "frames_per_run": args.frames,
+                      "fast": args.fast, "repeats": args.repeats, "frames_per_run": args.per_run,
                       "plain_ms_min_median_max": mmm(a), "flip_ms_min_median_max": mmm(b),
                       "ratio_min_median_max": mmm(ratio)}, indent=1))
 

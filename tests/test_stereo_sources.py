@@ -12,6 +12,7 @@ import torch
 from mono_map.cli import main as cli_main
 from mono_map.depth import photometric as ph
 from mono_map.depth.adapt import AdaptConfig, adapt, with_stereo_sources
+from mono_map.depth.inference import load_checkpoint
 from mono_map.depth.multiview import MultiviewConfig, MultiviewPosterior
 from mono_map.errors import MonoMapError
 from test_multiview import BINS, WALL, K, WallSeq, flat_prediction, texture
@@ -125,6 +126,10 @@ def run(root, ckpt, tmp_path, name, **kw):
 def test_adapt_uses_image_3_when_there_and_names_it(tiny_root, stereo_root, tmp_path):
     ckpt = write_tiny_checkpoint(tmp_path / "tinynet.pt", beyond=True)
     a = run(stereo_root, ckpt, tmp_path, "auto")
+    again = run(stereo_root, ckpt, tmp_path, "again")      # deterministic with image_3 too
+    ma, mb = load_checkpoint(a.checkpoint)[0], load_checkpoint(again.checkpoint)[0]
+    assert a.checkpoint.name == again.checkpoint.name
+    assert all(torch.equal(x, y) for x, y in zip(ma.state_dict().values(), mb.state_dict().values()))
     off = run(stereo_root, ckpt, tmp_path, "off", stereo="off")
     assert a.metadata["adapted"]["stereo"] is True and off.metadata["adapted"]["stereo"] is False
     assert a.checkpoint.name != off.checkpoint.name
