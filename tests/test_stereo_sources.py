@@ -125,20 +125,22 @@ def run(root, ckpt, tmp_path, name, **kw):
 
 def test_adapt_uses_image_3_when_there_and_names_it(tiny_root, stereo_root, tmp_path):
     ckpt = write_tiny_checkpoint(tmp_path / "tinynet.pt", beyond=True)
-    a = run(stereo_root, ckpt, tmp_path, "auto")
-    again = run(stereo_root, ckpt, tmp_path, "again")      # deterministic with image_3 too
+    default = run(stereo_root, ckpt, tmp_path, "default")
+    assert default.metadata["adapted"]["stereo"] is False          # off unless asked for (measured: docs/real_kitti.md)
+    a = run(stereo_root, ckpt, tmp_path, "auto", stereo="auto")
+    again = run(stereo_root, ckpt, tmp_path, "again", stereo="auto")      # deterministic with image_3 too
     ma, mb = load_checkpoint(a.checkpoint)[0], load_checkpoint(again.checkpoint)[0]
     assert a.checkpoint.name == again.checkpoint.name
     assert all(torch.equal(x, y) for x, y in zip(ma.state_dict().values(), mb.state_dict().values()))
     off = run(stereo_root, ckpt, tmp_path, "off", stereo="off")
     assert a.metadata["adapted"]["stereo"] is True and off.metadata["adapted"]["stereo"] is False
-    assert a.checkpoint.name != off.checkpoint.name
+    assert a.checkpoint.name != off.checkpoint.name and off.checkpoint.name == default.checkpoint.name
     # without image_3, auto is the run it always was: the same name as stereo off
-    plain = run(tiny_root, ckpt, tmp_path, "plain")
+    plain = run(tiny_root, ckpt, tmp_path, "plain", stereo="auto")
     plain_off = run(tiny_root, ckpt, tmp_path, "plain_off", stereo="off")
     assert plain.checkpoint.name == plain_off.checkpoint.name and plain.metadata["adapted"]["stereo"] is False
     # a car too slow for a temporal source: the right images alone still adapt
-    slow = run(stereo_root, ckpt, tmp_path, "slow", min_baseline=3.9)
+    slow = run(stereo_root, ckpt, tmp_path, "slow", min_baseline=3.9, stereo="auto")
     assert slow.metadata["adapted"]["targets"] == 6
     with pytest.raises(MonoMapError, match="too little motion"):
         run(stereo_root, ckpt, tmp_path, "slow_off", min_baseline=3.9, stereo="off")

@@ -68,8 +68,9 @@ class AdaptConfig:
     hint_loss: str = "log"           # "log": |log d − log hint| on the expected depth; "head": the head's training loss
     hint_contrast: float = 0.1       # a hint only where the sweep's mean cost exceeds its best by more than this
     # the same frame's right colour camera (image_3) as one more source of every target (monodepth2's "MS"): a
-    # 0.53 m baseline at the same instant, so it also sees a stopped car's frames and things moving with the car
-    stereo: str = "auto"
+    # 0.53 m baseline at the same instant, so it also sees a stopped car's frames and things moving with the car.
+    # Off by default: no gain measured on the synthetic towns (06, 00, 07's stop); real01 has no image_3
+    stereo: str = "off"
 
     def validate(self) -> None:
         checks = [(self.steps >= 1, "--steps", f"must be >= 1, got {self.steps}"),
