@@ -65,3 +65,19 @@ def test_build_and_eval_take_flip_and_key_it(tiny_root, tmp_path, capsys):
         assert cli_main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "--flip" in err[0], err
+
+
+def test_eval_depth_names_flipped_rows_and_they_differ(tmp_path, tiny_root):
+    import json
+
+    from mono_map.cli import main as cli_main
+
+    ckpt = write_tiny_checkpoint(tmp_path / "tinynet.pt", {"name": "tiny-run"}, beyond=True)
+    res = {}
+    for extra in ([], ["--flip"]):
+        out = tmp_path / f"ev{len(extra)}"
+        assert cli_main(["eval-depth", "--seq", "tiny", "--data-root", str(tiny_root), "--frames", "0:2",
+                         "--model", str(ckpt), "--out", str(out), "--threads", "1", *extra]) == 0
+        res.update(json.loads((out / "depth_seqtiny.json").read_text())["results"])
+    assert set(res) == {"tiny-run", "tiny-run --flip"}
+    assert res["tiny-run"]["metrics"]["abs_rel"] != res["tiny-run --flip"]["metrics"]["abs_rel"]

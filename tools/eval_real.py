@@ -103,7 +103,7 @@ def evaluate_sources(models: list[str], sources: list[Source], fast: bool = Fals
         for m, p in predictors:
             r = evaluate_model(p, iter(frames), len(frames), desc=f"{src.name} {Path(m).stem}", time_frames=0)
             s = r["sparsification"]
-            rows.append({"source": src.name, "what": src.what, "model": m, "n_frames": r["n_frames"],
+            rows.append({"source": src.name, "what": src.what, "model": m + (" --flip" if flip else ""), "n_frames": r["n_frames"],
                          "n_pixels": r["n_pixels"], "abs_rel": r["metrics"]["abs_rel"], "rmse": r["metrics"]["rmse"],
                          "a1": r["metrics"]["a1"], "abs_rel_median_scaled": r["metrics_median_scaled"]["abs_rel"],
                          "auc_are": s["auc"]["are"], "auc_are_oracle": s["auc_oracle"]["are"],

@@ -254,6 +254,7 @@ def run_eval_depth(args) -> int:
         p = DepthPredictor.load(m, fast=args.fast, flip=args.flip)
         key = m if m in shipped else p.training.get("name") or p.head   # the run's name (e.g. v2-binary-k32)
         key = key if key not in predictors else f"{key} ({m})"
+        key += " --flip" if args.flip else ""
         predictors[key] = p
     if selection_split is not None:
         return run_split(args, selection_split, predictors)
