@@ -34,6 +34,9 @@ class StereoWallSeq(WallSeq):
     def has_right(self, indices):
         return True
 
+    def require_right(self, indices, option):
+        pass
+
     def image_right(self, i):
         v, u = np.mgrid[0:64, 0:160].astype(np.float64)
         cx = (0.0 if self.moving else self.step * i) + BASELINE

@@ -187,10 +187,22 @@ class KittiSequence:
 
     def has_right(self, indices) -> bool:
         """True if frames ``indices`` all have a right image (and the calibration its P3 with image_2's K)."""
+        return self._missing_right(indices) is None
+
+    def require_right(self, indices, option: str) -> None:
+        """MonoMapError (one line, led by ``option``) saying why frames ``indices`` have no usable right image."""
+        why = self._missing_right(indices)
+        if why is not None:
+            hint = f"; render them with mono-map synth --seq {self.name} --stereo" if self.is_synthetic else ""
+            raise MonoMapError(f"{option}: {self.path}: no right colour camera to use, {why}{hint}")
+
+    def _missing_right(self, indices) -> str | None:
         P2, P3 = self.calib.P2, self.calib.P3
         if P3 is None or not np.allclose(P3[:, :3], P2[:, :3], rtol=1e-6, atol=1e-6):
-            return False
-        return all((self.right_dir / self.image_files[self._check_index(i)].name).is_file() for i in indices)
+            return "its calibration has no P3 with image_2's intrinsics"
+        if not all((self.right_dir / self.image_files[self._check_index(i)].name).is_file() for i in indices):
+            return f"{self.right_dir} lacks the image_3 of some of the frames"
+        return None
 
     def image_right(self, i: int) -> np.ndarray:
         """The right colour camera's image of frame i (image_3; same size and K as image_2): H×W×3 uint8 RGB."""

@@ -156,14 +156,9 @@ def use_stereo(seq, indices: list[int], mode: str) -> bool:
     """Whether an adaptation uses image_3: ``auto`` if every frame has it, ``on`` (required), ``off``."""
     if mode == "off":
         return False
-    have = seq.has_right(indices)
-    if mode == "on" and not have:
-        why = ("its calibration has no P3 with image_2's intrinsics" if seq.calib.P3 is None
-               or not np.allclose(seq.calib.P3[:, :3], seq.calib.P2[:, :3], atol=1e-6)
-               else f"{seq.right_dir} lacks images of some of the frames")
-        hint = f" (render them: mono-map synth --seq {seq.name} --stereo)" if seq.is_synthetic else ""
-        raise MonoMapError(f"--stereo on: {seq.path}: no right colour camera to use, {why}{hint}")
-    return have
+    if mode == "on":
+        seq.require_right(indices, "--stereo on")
+    return seq.has_right(indices)
 
 
 def with_stereo_sources(sources: dict[int, list[int]], n: int) -> dict[int, list[int]]:

@@ -296,23 +296,23 @@ class MultiviewPosterior:
 
         if pred.probs is None:
             raise MonoMapError("multiview: the prediction has no bin probabilities")
-        views = [(j, False) for j in self.neighbours(seq, i)] + ([(i, True)] if self.cfg.stereo else [])
-        if not views:
+        # the neighbours and the right image are auto-masked apart (likelihood_of_groups): groups of (frame, right?)
+        groups = [g for g in ([(j, False) for j in self.neighbours(seq, i)], [(i, True)] if self.cfg.stereo else [])
+                  if g]
+        if not groups:
             self.last_informative = 0.0
             return pred
-        if self.cfg.stereo and not seq.has_right([i]):
-            raise MonoMapError(f"multiview stereo: {seq.right_dir}: no right image (image_3) of frame {i}, or no P3 "
-                               "with image_2's intrinsics in the calibration")
+        if self.cfg.stereo:
+            seq.require_right([i], "multiview stereo")
         tgt = self.small_image(seq, i)
         h, w = tgt.shape[1:]
         H, W = pred.depth.shape
         Ks = scaled_intrinsics(seq.calib.K2, w / W, h / H)
         T_t = seq.T_world_cam2(i)
-        rel = [np.linalg.inv(seq.T_world_cam3(j) if right else seq.T_world_cam2(j)) @ T_t for j, right in views]
-        with torch.no_grad():   # the neighbours and the right image are auto-masked apart (likelihood_of_groups)
-            groups = [[k for k, (_, right) in enumerate(views) if right == r] for r in (False, True)]
-            sweeps = [sweep_cost(tgt, [self.small_image(seq, *views[k]) for k in g], Ks, [rel[k] for k in g],
-                                 self.bins.centres) for g in groups if g]
+        with torch.no_grad():
+            sweeps = [sweep_cost(tgt, [self.small_image(seq, j, right) for j, right in g], Ks,
+                                 [np.linalg.inv(seq.T_world_cam3(j) if right else seq.T_world_cam2(j)) @ T_t
+                                  for j, right in g], self.bins.centres) for g in groups]
             ll, info = likelihood_of_groups(sweeps, self.cfg.temperature, int(self.cfg.window))
             step = int(pred.probs_step)
             prior = torch.as_tensor(np.ascontiguousarray(pred.probs, dtype=np.float32))

@@ -104,6 +104,15 @@ def reprojection_loss(target: torch.Tensor, sources: list[torch.Tensor], depth: 
     return reduce_reprojection(reproj, used, target, sources, mask, automask, trim)
 
 
+def auto_mask(reproj: torch.Tensor, used: torch.Tensor, target: torch.Tensor, sources: list[torch.Tensor]
+              ) -> torch.Tensor:
+    """``used`` (B,1,H,W) bool where the warped error ``reproj`` beats the unwarped sources' by
+    :data:`AUTOMASK_MARGIN` (monodepth2's auto-mask: a static camera, things moving with it are left out)."""
+    with torch.no_grad():   # the unwarped sources' error does not depend on the depth: no gradient
+        ident = torch.cat([photometric_error(s, target) for s in sources], 1).min(1, keepdim=True).values
+    return used & (reproj < ident - AUTOMASK_MARGIN)
+
+
 def grouped_reprojection(target: torch.Tensor, groups: list[tuple[list[torch.Tensor], list[torch.Tensor]]],
                          depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(per-pixel error, counted pixels) of several source groups [(sources, poses), ...], each auto-masked on
@@ -114,9 +123,7 @@ def grouped_reprojection(target: torch.Tensor, groups: list[tuple[list[torch.Ten
     best, counted = None, None
     for sources, poses in groups:
         reproj, used = min_reprojection_error(target, sources, depth, K, poses)
-        with torch.no_grad():
-            ident = torch.cat([photometric_error(s, target) for s in sources], 1).min(1, keepdim=True).values
-        used = used & (reproj < ident - AUTOMASK_MARGIN)
+        used = auto_mask(reproj, used, target, sources)
         reproj = torch.where(used, reproj, torch.full_like(reproj, 1e3))
         best, counted = (reproj, used) if best is None else (torch.minimum(best, reproj), counted | used)
     return best, counted
@@ -127,10 +134,8 @@ def reduce_reprojection(reproj: torch.Tensor, used: torch.Tensor, target: torch.
                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`reprojection_loss` from its per-pixel error ``reproj`` and seen pixels ``used`` (the output of
     :func:`min_reprojection_error`)."""
-    if automask:   # the unwarped sources' error does not depend on the depth: no gradient
-        with torch.no_grad():
-            ident = torch.cat([photometric_error(s, target) for s in sources], 1).min(1, keepdim=True).values
-        used = used & (reproj < ident - AUTOMASK_MARGIN)
+    if automask:
+        used = auto_mask(reproj, used, target, sources)
     if mask is not None:
         used = used & mask
     if trim > 0 and used.any():

@@ -146,7 +146,7 @@ def run_table(job: TableJob, pictures=None) -> Table:
         mono = source_of(source).predicted
         return MapJob.of(seq, source, frames, keep=keep, integrate=integrate, distribution=dcfg, octomap=cfg,
                          stride=stride, model=model, digest=digest if mono else None, fused=job.fused,
-                         flip=job.flip and mono)
+                         flip=job.flip)
 
     fov = job_of("lidar-fov")
     entries = [("LiDAR-FOV", "lidar-fov", None, fov)]

@@ -124,10 +124,8 @@ class MapBuilder:
         # the multi-view posterior (depth/multiview.py): a fused map's own setting, or any mono map's if given
         mv = multiview or (self.fcfg.multiview_config() if self.fusion is not None else None)
         self.multiview = MultiviewPosterior(mv, bins_of(predictor)) if mv is not None and self.kind.predicted else None
-        if self.multiview is not None and mv.stereo and not seq.has_right(job.frames):
-            raise MonoMapError(f"--fused-stereo 1: {seq.right_dir}: the right colour camera's images (image_3) of the "
-                               "frames built are not all there (or the calibration has no P3 with image_2's K)"
-                               + (f"; render them with mono-map synth --seq {seq.name} --stereo" if seq.is_synthetic else ""))
+        if self.multiview is not None and mv.stereo:
+            seq.require_right(job.frames, "--fused-stereo 1")
         self.surface_points = 0                    # fused: surface hits inserted (cells, summed over frames)
         self.group: KeepGroup | None = None   # keep maps whose frames share one ray cast (share_ray_casts)
         self.edges = bin_edges(predictor) if self.dist_mode else None

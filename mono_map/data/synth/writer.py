@@ -58,22 +58,23 @@ def read_calib() -> dict[str, np.ndarray]:
     return out
 
 
-def frame_paths(seq_dir: Path, i: int, stereo: bool = False) -> dict[str, Path]:
-    """The files of frame ``i``; with ``stereo`` also the right camera's ``image_3``."""
+def frame_paths(seq_dir: Path, i: int) -> dict[str, Path]:
     name = f"{i:06d}"
-    paths = {"image": seq_dir / "image_2" / f"{name}.png", "depth": seq_dir / "depth_2" / f"{name}.png",
-             "velodyne": seq_dir / "velodyne" / f"{name}.bin"}
-    if stereo:
-        paths["image_3"] = seq_dir / "image_3" / f"{name}.png"
-    return paths
+    return {"image": seq_dir / "image_2" / f"{name}.png", "depth": seq_dir / "depth_2" / f"{name}.png",
+            "velodyne": seq_dir / "velodyne" / f"{name}.bin"}
 
 
-def frame_complete(seq_dir: Path, i: int, stereo: bool = False) -> bool:
-    return all(p.is_file() for p in frame_paths(seq_dir, i, stereo).values())
+def frame_complete(seq_dir: Path, i: int) -> bool:
+    return all(p.is_file() for p in frame_paths(seq_dir, i).values())
+
+
+def right_path(seq_dir: Path, i: int) -> Path:
+    """The right colour camera's image of frame ``i`` (``image_3``; written only with synth --stereo)."""
+    return seq_dir / "image_3" / f"{i:06d}.png"
 
 
 def right_complete(seq_dir: Path, i: int) -> bool:
-    return frame_paths(seq_dir, i, stereo=True)["image_3"].is_file()
+    return right_path(seq_dir, i).is_file()
 
 
 def leading_right_frames(seq_dir: Path, n: int) -> int:
@@ -105,7 +106,7 @@ def write_frame(seq_dir: Path, i: int, rgb: np.ndarray, depth_m: np.ndarray, poi
 
 def write_right(seq_dir: Path, i: int, rgb: np.ndarray) -> None:
     """The right colour camera's image of frame ``i`` (``image_3``), written as image_2 is."""
-    _write_png(frame_paths(seq_dir, i, stereo=True)["image_3"], rgb)
+    _write_png(right_path(seq_dir, i), rgb)
 
 
 def write_sequence_files(root: Path, name: str, pose_lines: list[str], times: np.ndarray) -> None:
