@@ -73,18 +73,19 @@ def randomized_recipe(spec: TownSpec) -> Recipe:
     h_min = u(5.0, 14.0)
     w_min = u(7.0, 14.0)
     traffic = TrafficParams()
-    if spec.traffic:                         # its own stream: the draws above and below are those of any town
+    if spec.jam:                             # real01's scene: the next lane full, large vehicles beside, one ahead
+        j = np.random.default_rng([spec.seed, 133])
+        traffic = TrafficParams(adjacent_density=float(j.uniform(0.85, 1.0)),
+                                ahead_spacing=float(j.uniform(12.0, 25.0)),
+                                large_fraction=float(j.uniform(0.5, 0.9)), van_fraction=float(j.uniform(0.2, 0.4)),
+                                kerb_large_density=float(j.uniform(0.4, 0.9)))
+    elif spec.traffic:                       # its own stream: the draws above and below are those of any town
         t = np.random.default_rng([spec.seed, 131])
         kerb = float(np.random.default_rng([spec.seed, 132]).uniform(0.3, 0.8)) if spec.kerb_trucks else 0.0
         traffic = TrafficParams(adjacent_density=float(t.uniform(0.3, 0.9)),
                                 ahead_spacing=float(t.uniform(35.0, 90.0)),
                                 large_fraction=float(t.uniform(0.3, 0.7)), van_fraction=float(t.uniform(0.1, 0.35)),
                                 kerb_large_density=kerb)
-        if spec.jam:                         # real01's scene: the next lane full, large vehicles beside, a car close ahead
-            j = np.random.default_rng([spec.seed, 133])
-            traffic = TrafficParams(adjacent_density=float(j.uniform(0.85, 1.0)), ahead_spacing=float(j.uniform(12.0, 25.0)),
-                                    large_fraction=float(j.uniform(0.5, 0.9)), van_fraction=float(j.uniform(0.2, 0.4)),
-                                    kerb_large_density=float(j.uniform(0.4, 0.9)))
     return Recipe(
         name=spec.name, seed=spec.seed, frames=spec.frames, trajectory=spec.trajectory,
         pose_stride=spec.pose_stride, first_pose=spec.first_pose,
