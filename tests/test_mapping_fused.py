@@ -12,8 +12,8 @@ from mono_map.errors import MonoMapError
 from mono_map.mapping.jobs import MapJob
 from mono_map.mapping.pipeline import build_map
 from mono_map.mapping.distribution import DistributionConfig
-from mono_map.mapping.fused import (FusedConfig, SurfaceFusion, check_fused_config, log_spread, mode_shift,
-                                    pixel_weights)
+from mono_map.mapping.fused import (FusedConfig, SurfaceFusion, check_fused_config, due_surface_points, log_spread,
+                                    mode_shift, pixel_weights)
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.octree import key_to_coord, morton_to_keys, pack_keys, tree_leaves
 from mono_map.mapping.points import camera_origin, pixels_to_world
@@ -112,12 +112,12 @@ def fused_build(seq, predictor, frames, fcfg=FusedConfig(), dcfg=DCFG, observers
                      predictor=predictor, observers=observers, show_progress=False)
 
 
-@pytest.mark.parametrize("subpixel, ray_step", [(0, 1), (1, 1)])
-def test_exact_depth_gives_the_depth_gt_surface_within_one_cell(subpixel, ray_step):
+@pytest.mark.parametrize("subpixel, ray_step, gate", [(0, 1, 0), (1, 1, 0), (0, 1, 3)])
+def test_exact_depth_gives_the_depth_gt_surface_within_one_cell(subpixel, ray_step, gate):
     seq = Seq(6)
     gt = build_map(seq, MapJob.spec("depth-gt", range(6)), show_progress=False)
     fused = fused_build(seq, LogNormalPredictor(seq.depth, 1e-4), range(6),
-                        FusedConfig(min_weight=1.0, subpixel=subpixel, snap_step=1),
+                        FusedConfig(min_weight=1.0, subpixel=subpixel, snap_step=1, gate=gate),
                         DistributionConfig(ray_step=ray_step, temperature=1.0))
     a, b = occupied_keys_of(fused.tree), occupied_keys_of(gt.tree)
     assert len(a) > 500
@@ -283,7 +283,8 @@ def test_log_spread_and_weights():
     ("max_depth", float("inf"), "--fused-max-depth"), ("lag", -1, "--fused-lag"),
     ("snap_window", 0.0, "--fused-snap-window"),
     ("trunc_sigma", -2.0, "--fused-trunc-sigma"), ("max_spread", 0.0, "--fused-max-spread"),
-    ("mode", 2, "--fused-mode")])
+    ("mode", 2, "--fused-mode"), ("gate", -1.0, "--fused-gate"),
+    ("gate", float("nan"), "--fused-gate")])
 def test_bad_settings_are_one_line_naming_the_option(field, value, option):
     import dataclasses
 
@@ -311,3 +312,24 @@ def test_the_surface_streams_to_observers_as_it_refines():
     shown = sum(became) - sum(len(u.freed_keys_changed) for u in seen)
     assert shown == len(occupied_keys_of(fused.tree)) > 0
 
+
+
+
+@pytest.mark.parametrize("gate", [0.0, 2.0])
+def test_the_gate_keeps_a_pixels_own_depth_where_the_fused_surface_confirms_it(gate):
+    """A wall fused at 10 m; pixels asking at 10.1 m (half a cell off) and at 10.9 m (4.5 cells off). Without
+    the gate both snap onto the wall; with a 2-cell gate the near ones keep their own 10.1 m and the far ones
+    give no hit."""
+    fusion = SurfaceFusion(FusedConfig(gate=gate, lag=0), 0.2, initial_blocks=256)
+    wall = np.full((H, W), 10.0, np.float32)
+    for _ in range(2):
+        fusion.integrate(wall, np.ones_like(wall), np.full_like(wall, 0.6), K, np.eye(4))
+    fusion.pending.clear()
+    ask = np.where(np.arange(W)[None, :] < W // 2, np.float32(10.1), np.float32(10.9)) * np.ones((H, 1), np.float32)
+    fusion.pending.append((ask, K, np.eye(4)))
+    pts = np.concatenate(due_surface_points(fusion, flush=True))
+    z = pts[:, 2]
+    if gate:                      # (the image's last row sees no voxel of its own)
+        assert 0.95 * H * W / 2 <= len(z) <= H * W / 2 and np.allclose(z, 10.1, atol=1e-4)
+    else:
+        assert len(z) >= 0.95 * H * W and np.abs(z - 10.0).max() < 0.1

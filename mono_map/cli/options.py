@@ -152,6 +152,8 @@ FUSED_OPTIONS = (
                "multi-view posterior (the sequence needs image_3); 0: the left images only"),
     ("subpixel", "1: voxels read the full-resolution depth bilinearly; 0: the nearest ray-grid pixel"),
     ("mode", "1: each pixel's surface moves from its expected depth to its distribution's mode; 0: it stays"),
+    ("gate", "> 0: a pixel's hit stays at its own surface depth where the fused surface is within this many "
+             "cells of it (none elsewhere); 0: the hit is moved onto the fused surface"),
 )
 
 

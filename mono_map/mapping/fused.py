@@ -75,6 +75,8 @@ class FusedConfig:
     subpixel: int = 0
     mode: int = 1
     stereo: int = 0                    # 1: image_3 is one more source of the posterior (needs multiview on)
+    gate: float = 0.0                  # > 0: a pixel's hit stays at its own surface depth where the fused surface is
+                                       # within this many cells of it, none elsewhere; 0: the hit on the fused surface
 
     def multiview_config(self):
         """The multi-view posterior's settings (:mod:`mono_map.depth.multiview`), None when it is off."""
@@ -114,6 +116,8 @@ def check_fused_config(cfg: FusedConfig) -> FusedConfig:
     if cfg.stereo and not cfg.multiview:
         raise MonoMapError("--fused-stereo: the right image is a source of the multi-view posterior; it needs "
                            "--fused-multiview 1 or 2")
+    if not (isinstance(cfg.gate, (int, float)) and math.isfinite(cfg.gate) and cfg.gate >= 0):
+        raise MonoMapError(f"--fused-gate: must be a number of cells >= 0 (0 = off), got {cfg.gate}")
     if cfg.mode not in (0, 1):
         raise MonoMapError(f"--fused-mode: must be 0 (the expected depth) or 1 (the mode), got {cfg.mode}")
     return cfg
@@ -380,6 +384,8 @@ def due_surface_points(fusion: SurfaceFusion, flush: bool = False) -> list[np.nd
     while fusion.pending and (flush or len(fusion.pending) > fusion.cfg.lag):
         depth, Ks, T = fusion.pending.pop(0)
         z = fusion.snap_depths(depth, Ks, T, fusion.cfg.snap_window)
+        if fusion.cfg.gate > 0:     # the fused surface confirms the pixel's own depth instead of replacing it
+            z = np.where((z > 0) & (np.abs(z - depth) <= fusion.cfg.gate * fusion.res), depth, np.float32(0.0))
         v, u = np.nonzero(z > 0)
         zz = z[v, u].astype(np.float64)
         cam = np.stack([(u - Ks[0, 2]) / Ks[0, 0] * zz, (v - Ks[1, 2]) / Ks[1, 1] * zz, zz], axis=1)
