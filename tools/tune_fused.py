@@ -47,13 +47,15 @@ def score(tree, ref, surf) -> dict:
     out["memory_mb"] = tree.memoryUsage() / 2**20
     out["surface_precision"] = surface_precision(leaves, surf)["surface_precision"] if surf is not None else None
     out["occupied_cells"] = int(leaves.length[leaves.occupied].sum())
+    out["freed"] = m["missed_occupied_cells"]      # the reference's occupied cells this map holds free
     return out
 
 
 def row(name: str, m: dict) -> str:
     sp = "–" if m["surface_precision"] is None else f"{100 * m['surface_precision']:.1f}"
     return (f"| {name} | {100 * m['accuracy']:.1f} | {100 * m['coverage']:.1f} | {100 * m['precision']:.1f} / "
-            f"{100 * m['recall']:.1f} / {100 * m['f1']:.1f} | {sp} | {m['occupied_cells']:,} | {m['memory_mb']:.1f} |")
+            f"{100 * m['recall']:.1f} / {100 * m['f1']:.1f} | {sp} | {m['occupied_cells']:,} | {m['freed']:,} | "
+            f"{m['memory_mb']:.1f} |")
 
 
 def main(argv=None) -> int:
@@ -111,8 +113,8 @@ def main(argv=None) -> int:
                                         multiview=kw.get("multiview"), predictor=predictor, stats_every=10**9)
                                    for kw in maps])
     run_builders(seq, builders, frames)
-    lines = ["| map | acc. | cov. | occ. P / R / F1 | surface prec. | occupied cells | memory (MB) |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| map | acc. | cov. | occ. P / R / F1 | surface prec. | occupied cells | reference's occupied cells freed | "
+             "memory (MB) |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
     if gt_tree is not None and not args.no_baselines:
         lines.append(row("depth-gt", score(gt_tree, ref, surf)))
         print(lines[-1], flush=True)
