@@ -333,3 +333,10 @@ def test_the_gate_keeps_a_pixels_own_depth_where_the_fused_surface_confirms_it(g
         assert 0.95 * H * W / 2 <= len(z) <= H * W / 2 and np.allclose(z, 10.1, atol=1e-4)
     else:
         assert len(z) >= 0.95 * H * W and np.abs(z - 10.0).max() < 0.1
+
+
+def test_a_fused_maps_key_names_the_gate_only_when_it_is_on():
+    """Maps made before the gate existed keep their keys (and are reused); a gated map is another map."""
+    off = MapJob.spec("mono", range(3), integrate="fused").key()["integration"]["fused"]
+    on = MapJob.spec("mono", range(3), integrate="fused", fused=FusedConfig(gate=3)).key()["integration"]["fused"]
+    assert "gate" not in off and on["gate"] == 3

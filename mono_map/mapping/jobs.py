@@ -149,8 +149,9 @@ class MapJob:
                        "distribution": dataclasses.asdict(self.distribution) if self.distributional else None}
         if self.is_fused:                 # only fused maps carry the key: the other maps' keys stay as they were
             integration["fused"] = dataclasses.asdict(self.fused)
-            if not self.fused.stereo:     # the keys of the fused maps made before image_3 could be a source
-                integration["fused"].pop("stereo")
+            for name in ("stereo", "gate"):   # off: the keys of the fused maps made before the option existed
+                if not getattr(self.fused, name):
+                    integration["fused"].pop(name)
         return {"data_root": self.data_root, "sequence": self.sequence, "synthetic": dict(self.synthetic) or None,
                 "data": dict(self.data) or None,
                 "source": self.source, "keep": self.keep if self.mono and not self.distributional else None,
