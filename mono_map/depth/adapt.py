@@ -157,7 +157,8 @@ def use_stereo(seq, indices: list[int], mode: str) -> bool:
     if mode == "off":
         return False
     if mode == "on":
-        seq.require_right(indices, "--stereo on")
+        seq.require_right(indices, "--stereo on")   # refused unless every frame has it
+        return True
     return seq.has_right(indices)
 
 
