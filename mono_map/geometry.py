@@ -115,3 +115,46 @@ def lidar_depth_image(points_cam: np.ndarray, K: np.ndarray, height: int, width:
     np.minimum.at(depth, v * width + u, z)
     depth[~np.isfinite(depth)] = 0.0
     return depth.reshape(height, width).astype(np.float32)
+
+
+def depth_normals(depth: np.ndarray, K: np.ndarray, min_cos: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Surface normals of a z-depth image ``depth`` (H, W) metres (0 = none) with pinhole ``K`` (3×3).
+
+    Each pixel's two tangents are the differences of its back-projected point to a row and a column
+    neighbour, on the side whose depth differs less (so a pixel beside a depth edge takes the surface it is
+    on). Returns (normals (H, W, 3) float32 unit vectors in the camera frame, facing the camera, and
+    cos (H, W) float32 = −n·(x/z, y/z, 1) ≥ ``min_cos``: a point at depth z on the pixel's ray lies
+    cos·(d − z) metres in front of the plane through the pixel's surface point). Pixels without a
+    usable neighbour on either axis get the reversed ray as normal (cos = |ray|)."""
+    d = np.asarray(depth, dtype=np.float32)
+    h, w = d.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    ray = np.stack([(u - np.float32(K[0, 2])) / np.float32(K[0, 0]),
+                    (v - np.float32(K[1, 2])) / np.float32(K[1, 1]), np.ones_like(u)], axis=-1)
+    P = ray * d[..., None]
+
+    def tangent(axis: int) -> tuple[np.ndarray, np.ndarray]:
+        fwd = np.zeros_like(P)
+        bwd = np.zeros_like(P)
+        ok_f = np.zeros(d.shape, bool)
+        ok_b = np.zeros(d.shape, bool)
+        if axis == 0:
+            fwd[:-1], ok_f[:-1] = P[1:] - P[:-1], (d[1:] > 0) & (d[:-1] > 0)
+            bwd[1:], ok_b[1:] = P[1:] - P[:-1], ok_f[:-1]
+        else:
+            fwd[:, :-1], ok_f[:, :-1] = P[:, 1:] - P[:, :-1], (d[:, 1:] > 0) & (d[:, :-1] > 0)
+            bwd[:, 1:], ok_b[:, 1:] = P[:, 1:] - P[:, :-1], ok_f[:, :-1]
+        use_f = ok_f & (~ok_b | (np.abs(fwd[..., 2]) <= np.abs(bwd[..., 2])))
+        return np.where(use_f[..., None], fwd, bwd), ok_f | ok_b
+
+    tv, ok_v = tangent(0)
+    tu, ok_u = tangent(1)
+    n = np.cross(tu, tv)
+    norm = np.linalg.norm(n, axis=-1)
+    good = ok_u & ok_v & (norm > 0)
+    n = np.where(good[..., None], n / np.where(good, norm, 1.0)[..., None], -ray / np.linalg.norm(ray, axis=-1,
+                                                                                                   keepdims=True))
+    cos = -(n * ray).sum(axis=-1)
+    n = np.where((cos < 0)[..., None], -n, n)                    # facing the camera
+    cos = np.maximum(np.abs(cos), np.float32(min_cos))
+    return n.astype(np.float32), cos.astype(np.float32)

@@ -12,8 +12,8 @@ from mono_map.errors import MonoMapError
 from mono_map.mapping.jobs import MapJob
 from mono_map.mapping.pipeline import build_map
 from mono_map.mapping.distribution import DistributionConfig
-from mono_map.mapping.fused import (FusedConfig, SurfaceFusion, check_fused_config, due_surface_points, log_spread,
-                                    mode_shift, pixel_weights)
+from mono_map.mapping.fused import FusedConfig, SurfaceFusion, check_fused_config, log_spread, mode_shift, pixel_weights
+from mono_map.mapping.fused_frames import due_surface_points
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.octree import key_to_coord, morton_to_keys, pack_keys, tree_leaves
 from mono_map.mapping.points import camera_origin, pixels_to_world
@@ -112,12 +112,13 @@ def fused_build(seq, predictor, frames, fcfg=FusedConfig(), dcfg=DCFG, observers
                      predictor=predictor, observers=observers, show_progress=False)
 
 
-@pytest.mark.parametrize("subpixel, ray_step, gate", [(0, 1, 0), (1, 1, 0), (0, 1, 3)])
-def test_exact_depth_gives_the_depth_gt_surface_within_one_cell(subpixel, ray_step, gate):
+@pytest.mark.parametrize("subpixel, ray_step, gate, euclid", [(0, 1, 0, 0), (1, 1, 0, 0), (0, 1, 3, 0), (0, 1, 0, 1),
+                                                               (1, 1, 0, 1)])
+def test_exact_depth_gives_the_depth_gt_surface_within_one_cell(subpixel, ray_step, gate, euclid):
     seq = Seq(6)
     gt = build_map(seq, MapJob.spec("depth-gt", range(6)), show_progress=False)
     fused = fused_build(seq, LogNormalPredictor(seq.depth, 1e-4), range(6),
-                        FusedConfig(min_weight=1.0, subpixel=subpixel, snap_step=1, gate=gate),
+                        FusedConfig(min_weight=1.0, subpixel=subpixel, snap_step=1, gate=gate, euclid=euclid),
                         DistributionConfig(ray_step=ray_step, temperature=1.0))
     a, b = occupied_keys_of(fused.tree), occupied_keys_of(gt.tree)
     assert len(a) > 500
@@ -284,7 +285,7 @@ def test_log_spread_and_weights():
     ("snap_window", 0.0, "--fused-snap-window"),
     ("trunc_sigma", -2.0, "--fused-trunc-sigma"), ("max_spread", 0.0, "--fused-max-spread"),
     ("mode", 2, "--fused-mode"), ("gate", -1.0, "--fused-gate"),
-    ("gate", float("nan"), "--fused-gate")])
+    ("gate", float("nan"), "--fused-gate"), ("euclid", 2, "--fused-euclid")])
 def test_bad_settings_are_one_line_naming_the_option(field, value, option):
     import dataclasses
 
@@ -340,3 +341,62 @@ def test_a_fused_maps_key_names_the_gate_only_when_it_is_on():
     off = MapJob.spec("mono", range(3), integrate="fused").key()["integration"]["fused"]
     on = MapJob.spec("mono", range(3), integrate="fused", fused=FusedConfig(gate=3)).key()["integration"]["fused"]
     assert "gate" not in off and on["gate"] == 3
+    on = MapJob.spec("mono", range(3), integrate="fused", fused=FusedConfig(euclid=1)).key()["integration"]["fused"]
+    assert "euclid" not in off and on["euclid"] == 1
+
+
+def road_depth(Kr, h, w, height):
+    """z-depth (h, w) of a flat road ``height`` m below a level camera (0 above the horizon and beyond 40 m)."""
+    dy = (np.arange(h, dtype=np.float32)[:, None] - np.float32(Kr[1, 2])) / np.float32(Kr[1, 1]) * np.ones((1, w), np.float32)
+    d = np.where(dy > 1e-3, height / np.maximum(dy, 1e-3), 0.0)
+    return np.where(d <= 40, d, 0.0).astype(np.float32)
+
+
+@pytest.mark.parametrize("euclid", [0, 1])
+def test_on_a_road_seen_at_grazing_angles_the_normal_puts_each_hit_in_its_own_cell(euclid):
+    """A flat road 1.65 m below a camera driving 0.37 m a frame (its cells cut by the road at varying heights):
+    distances along the optical axis are metres at grazing angles, and the hits they snap to land in the cell
+    above or below the road's (the true cells are then freed by the rays); distances along the normal give each
+    pixel the cell of its own surface point."""
+    from mono_map.geometry import depth_normals
+
+    Kr = np.array([[180.0, 0.0, 155.0], [0.0, 180.0, 47.0], [0.0, 0.0, 1.0]])
+    h, w, res = 94, 310, 0.2
+    fusion = SurfaceFusion(FusedConfig(euclid=euclid, lag=0), res, initial_blocks=2048)
+    frames = []
+    for k in range(6):
+        T = np.eye(4)
+        T[1, 3], T[2, 3] = 0.013 * k, 0.37 * k                 # the world's road stays at y = 1.65 m
+        d = road_depth(Kr, h, w, 1.65 - T[1, 3])
+        fusion.integrate(d, np.ones_like(d), np.full_like(d, 0.6), Kr, T, None,
+                         depth_normals(d, Kr)[0] if euclid else None)
+        frames.append((d, T))
+    d, T = frames[3]
+    z = fusion.snap_depths(d, Kr, T, 1.0, normals=depth_normals(d, Kr)[0] if euclid else None)
+    v, u = np.nonzero((z > 0) & (d > 0))
+    assert len(v) > 0.8 * (d > 0).sum()
+
+    def cells(zz):
+        cam = np.stack([(u - Kr[0, 2]) / Kr[0, 0] * zz, (v - Kr[1, 2]) / Kr[1, 1] * zz, zz], axis=1)
+        return np.floor((cam + T[:3, 3]) / res).astype(np.int64)
+
+    own = (cells(z[v, u]) == cells(d[v, u])).all(axis=1).mean()
+    if euclid:
+        assert own > 0.99 and np.abs(z[v, u] - d[v, u]).max() < 0.01
+    else:
+        assert own < 0.5
+
+
+def test_normals_of_a_depth_image_take_the_surface_each_pixel_is_on():
+    """A road below a wall: the road's normal is up (cos = height / depth), the wall's faces the camera (cos 1),
+    also in the rows where the two meet."""
+    from mono_map.geometry import depth_normals
+
+    Kr = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 10.0], [0.0, 0.0, 1.0]])
+    d = road_depth(Kr, 40, 100, 1.5)
+    d = np.where((d == 0) | (d > 10.0), np.float32(10.0), d)       # a wall at 10 m from the row the road reaches it
+    n, cos = depth_normals(d, Kr)
+    road, wall = d < 9.9, d >= 10.0
+    ray_y = (np.arange(40)[:, None] - 10.0) / 100.0 * np.ones((1, 100))
+    assert np.allclose(n[road], [0, -1, 0], atol=1e-3) and np.allclose(cos[road], ray_y[road], rtol=1e-3)
+    assert np.allclose(n[wall], [0, 0, -1], atol=1e-3) and np.allclose(cos[wall], 1.0, atol=1e-5)

@@ -37,7 +37,7 @@ from mono_map.mapping.oracle import NoisyGroundTruthPredictor  # noqa: E402
 
 GRID = ("spread_ref", "min_weight", "trunc_sigma", "trunc_min", "trunc_max", "trunc_behind", "max_depth",
         "max_spread", "lag", "snap_window", "snap_step", "multiview", "multiview_temperature", "subpixel", "mode",
-        "stereo", "gate")
+        "stereo", "gate", "euclid")
 
 
 def score(tree, ref, surf) -> dict:

@@ -154,6 +154,8 @@ FUSED_OPTIONS = (
     ("mode", "1: each pixel's surface moves from its expected depth to its distribution's mode; 0: it stays"),
     ("gate", "> 0: a pixel's hit stays at its own surface depth where the fused surface is within this many "
              "cells of it (none elsewhere); 0: the hit is moved onto the fused surface"),
+    ("euclid", "1: a pixel's signed distances are measured along its depth image's surface normal (the same from "
+               "every view; hits land in the surface's own cells at grazing angles); 0: along the optical axis"),
 )
 
 

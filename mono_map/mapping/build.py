@@ -29,7 +29,8 @@ from mono_map.depth.multiview import MultiviewPosterior, check_multiview_config
 from mono_map.errors import MonoMapError
 from mono_map.mapping.distribution import CellUpdates, check_distribution_config
 from mono_map.mapping.distribution_frame import distribution_frame
-from mono_map.mapping.fused import SurfaceFusion, check_fused_config, due_surface_points, fuse_prediction
+from mono_map.mapping.fused import SurfaceFusion, check_fused_config
+from mono_map.mapping.fused_frames import due_surface_points, fuse_prediction
 from mono_map.mapping.inputs import FrameInputs, bin_edges, bins_of, load_predictor, probs_steps
 from mono_map.mapping.integrate import MapIntegrator
 from mono_map.mapping.nested import KeepGroup, nested_frame

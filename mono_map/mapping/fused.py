@@ -48,7 +48,11 @@ class FusedConfig:
     max_spread: pixels whose log-depth spread is larger are not fused; lag: a frame's pixels are snapped to the
     fused surface this many frames after it was fused (the views that follow it are in the surface; the
     end of the build snaps the rest); snap_window: how far (metres) from a pixel's expected depth the
-    surface is looked for along its ray; snap_step: every snap_step-th pixel row and column of the ray grid is
+    surface is looked for along its ray; euclid: 1 = the signed distance a pixel gives a voxel is its distance to the
+    plane through the pixel's surface point along its depth image's normal (:func:`mono_map.geometry.depth_normals`:
+    cos · (μ − z)), the same from every view, and the snap reads a cell's value moved to the sample along the
+    pixel's own normal; 0 = the distance along the optical axis (μ − z) and the value moved along the axis;
+    snap_step: every snap_step-th pixel row and column of the ray grid is
     snapped (each still hits a cell of its own at 0.2 m cells beyond a few metres); multiview: neighbouring frames
     (0 = off, 1 or 2) whose images sharpen each frame's distribution before both halves use it (the plane-sweep
     posterior of :mod:`mono_map.depth.multiview`) and multiview_temperature its likelihood's τ; subpixel: 1 = each
@@ -77,6 +81,8 @@ class FusedConfig:
     stereo: int = 0                    # 1: image_3 is one more source of the posterior (needs multiview on)
     gate: float = 0.0                  # > 0: a pixel's hit stays at its own surface depth where the fused surface is
                                        # within this many cells of it, none elsewhere; 0: the hit on the fused surface
+    euclid: int = 0                    # 1: distances along the surface normal (the same from every view), 0: along
+                                       # the optical axis (projective)
 
     def multiview_config(self):
         """The multi-view posterior's settings (:mod:`mono_map.depth.multiview`), None when it is off."""
@@ -118,6 +124,8 @@ def check_fused_config(cfg: FusedConfig) -> FusedConfig:
                            "--fused-multiview 1 or 2")
     if not (isinstance(cfg.gate, (int, float)) and math.isfinite(cfg.gate) and cfg.gate >= 0):
         raise MonoMapError(f"--fused-gate: must be a number of cells >= 0 (0 = off), got {cfg.gate}")
+    if cfg.euclid not in (0, 1):
+        raise MonoMapError(f"--fused-euclid: must be 0 (along the optical axis) or 1 (along the normal), got {cfg.euclid}")
     if cfg.mode not in (0, 1):
         raise MonoMapError(f"--fused-mode: must be 0 (the expected depth) or 1 (the mode), got {cfg.mode}")
     return cfg
@@ -182,13 +190,16 @@ class SurfaceFusion:
         self.pending: list[tuple] = []     # frames fused, not yet snapped: (depth grid, K of the grid, pose)
 
     def integrate(self, depth: np.ndarray, weight: np.ndarray, trunc: np.ndarray, K: np.ndarray,
-                  T_world_cam: np.ndarray, fine: tuple | None = None) -> int:
+                  T_world_cam: np.ndarray, fine: tuple | None = None, normals: np.ndarray | None = None) -> int:
         """Fuse one depth image: ``depth`` (H, W) float32 z-depth in metres (0 = no surface), per-pixel
         ``weight`` (H, W) and truncation ``trunc`` (H, W, metres), pinhole ``K`` (3×3) of this pixel grid and
         the camera pose ``T_world_cam`` (4×4). ``fine``: (depth (H', W') at a finer grid, its K, step: pixel
         (step·j, step·i) of it is pixel (j, i) of ``depth``) — each voxel then reads its depth bilinearly there
         (the nearest fine pixel where the four neighbours differ by more than 5 %; none where one is 0), its
-        weight and truncation at the coarse pixel holding it. Returns the number of voxels updated."""
+        weight and truncation at the coarse pixel holding it. ``normals`` (H, W, 3): camera-frame unit normals facing the
+        camera (:func:`mono_map.geometry.depth_normals`); then a voxel's signed distance is the distance of its
+        centre to the plane through its pixel's surface point (the point on its own ray at the fine depth)
+        along that pixel's normal, else the distance along the axis. Returns the number of voxels updated."""
         o3d, o3c = self.o3d, self.o3c
         depth = np.ascontiguousarray(depth, dtype=np.float32)
         self.frames += 1
@@ -242,7 +253,15 @@ class SurfaceFusion:
             u = np.minimum(np.rint(uf / step).astype(np.int64), w - 1)       # the coarse pixel: weight, band
             v = np.minimum(np.rint(vf / step).astype(np.int64), h - 1)
         tau = trunc[v, u]
-        sdf = d - z
+        if normals is None:
+            sdf = d - z
+        elif fine is None:                  # to the plane through the pixel's surface point
+            n = normals[v, u]
+            pix = np.stack([(u - np.float32(K[0, 2])) / np.float32(K[0, 0]) * d,
+                            (v - np.float32(K[1, 2])) / np.float32(K[1, 1]) * d, d], axis=1)
+            sdf = (n * (pc[sel] - pix)).sum(axis=1)
+        else:                               # the surface point on the voxel's own ray
+            sdf = -(normals[v, u] * (pc[sel] / z[:, None])).sum(axis=1) * (d - z)
         keep = (d > 0) & (sdf >= -self.cfg.trunc_behind * tau)
         sel, sdf, tau = sel[keep], sdf[keep], tau[keep]
         wgt = weight[v[keep], u[keep]]
@@ -290,11 +309,12 @@ class SurfaceFusion:
         return tsdf_out, w_out
 
     def snap_depths(self, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
-                    window: float, min_weight: float | None = None) -> np.ndarray:
+                    window: float, min_weight: float | None = None, normals: np.ndarray | None = None) -> np.ndarray:
         """Each pixel's depth moved to the fused surface along its ray: the TSDF's zero crossing (from + in
         front to − behind, both cells with summed weight ≥ ``min_weight``) nearest to ``depth`` (H, W, metres, 0 =
         none) within ±``window`` metres, sampled every cell size along the optical axis (each sample reads its
-        cell's signed distance, moved from the cell's centre to the sample along the axis) and interpolated
+        cell's signed distance, moved from the cell's centre to the sample along the axis, or with ``normals``
+        (H, W, 3) camera-frame unit normals facing the camera, along the pixel's normal) and interpolated
         linearly; 0 where there is none (float32 (H, W))."""
         thr = np.float32(self.cfg.min_weight if min_weight is None else min_weight)
         depth = np.asarray(depth, dtype=np.float32)
@@ -312,8 +332,13 @@ class SurfaceFusion:
         t, w = self.sample(pts)
         # the cell's value holds at its centre: moved to the sample along this camera's axis (first order)
         centres = (np.floor(pts / self.res) + 0.5) * self.res
-        zc = (centres - T[:3, 3]) @ T[:3, 2]                   # the centres' depths in this camera
-        t = t.reshape(z.shape) * np.float32(self.cfg.trunc_max) - (z - zc.reshape(z.shape))
+        if normals is None:
+            zc = (centres - T[:3, 3]) @ T[:3, 2]                   # the centres' depths in this camera
+            step = z - zc.reshape(z.shape)
+        else:                                                      # the distance grows along the normal
+            nw = normals[v, u].astype(np.float64) @ T[:3, :3].T    # (P, 3) world
+            step = -np.einsum("psk,pk->ps", (pts - centres).reshape(z.shape + (3,)), nw)
+        t = t.reshape(z.shape) * np.float32(self.cfg.trunc_max) - step
         w = w.reshape(z.shape)
         good = (w >= thr) & (z > 0)
         cross = good[:, :-1] & good[:, 1:] & (t[:, :-1] >= 0) & (t[:, 1:] < 0)
@@ -331,63 +356,3 @@ class SurfaceFusion:
     @property
     def n_blocks(self) -> int:
         return int(self.vbg.hashmap().size())
-
-
-def fuse_prediction(fusion: SurfaceFusion, pred, valid: np.ndarray, K: np.ndarray, T_world_cam2: np.ndarray,
-                    edges: np.ndarray, ray_step: int) -> int:
-    """Fuse one frame's prediction (``pred.depth`` H×W expected depth, ``pred.probs`` K×H'×W' bin probabilities
-    every ``pred.probs_step`` pixels, optional ``pred.p_beyond`` H×W) at every ``ray_step``-th pixel row and
-    column of the ``valid`` (H×W bool) pixels into ``fusion``; ``K``: image_2's 3×3 intrinsics. Pixels more
-    likely beyond range than not, farther than ``max_depth`` or spread wider than ``max_spread`` are left out
-    of the TSDF. The frame's expected depths (every ``snap_step``-th pixel of the grid, all of them: whether a
-    pixel finds a surface decides) wait in ``fusion.pending`` to be snapped (:func:`due_surface_points`).
-    Returns the number of pixels fused."""
-    cfg = fusion.cfg
-    s, ps = int(ray_step), int(getattr(pred, "probs_step", 1))
-    if s % ps:
-        raise MonoMapError(f"--integrate fused: bin probabilities every {ps} pixels cannot serve rays every {s}")
-    probs = np.asarray(pred.probs)[:, ::s // ps, ::s // ps]
-    depth = np.asarray(pred.depth, dtype=np.float32)[::s, ::s]
-    ok = np.asarray(valid, dtype=bool)[::s, ::s]
-    if probs.shape[1:] != depth.shape:
-        raise MonoMapError(f"--integrate fused: bin probabilities {probs.shape} do not match the ray grid {depth.shape}")
-    pb = getattr(pred, "p_beyond", None)
-    if pb is not None:
-        ok &= ~(np.asarray(pb)[::s, ::s] > 0.5)
-    spread = log_spread(probs, edges)
-    if cfg.mode:                                   # onto the dominant mode instead of the expectation
-        depth = np.where(depth > 0, depth * np.exp(mode_shift(probs, edges)), np.float32(0.0)).astype(np.float32)
-    ok &= (depth > 0) & (depth <= cfg.max_depth) & (spread <= cfg.max_spread)
-    d = np.where(ok, depth, np.float32(0.0)).astype(np.float32)
-    trunc = np.clip(cfg.trunc_sigma * d * spread, cfg.trunc_min * fusion.res, cfg.trunc_max).astype(np.float32)
-    Ks = np.asarray(K, dtype=np.float64).copy()
-    Ks[:2] /= s                                                      # pixel (s·j, s·i) is grid pixel (j, i)
-    fine = None
-    if cfg.subpixel:                                                 # the voxels read the full-resolution depth
-        full = np.asarray(pred.depth, dtype=np.float32)
-        okf = np.repeat(np.repeat(ok, s, axis=0), s, axis=1)[:full.shape[0], :full.shape[1]]
-        fine = (np.where(okf & (full > 0), full, np.float32(0.0)), np.asarray(K, dtype=np.float64), s)
-    fusion.integrate(d, pixel_weights(spread, cfg), trunc, Ks, T_world_cam2, fine)
-    q = int(cfg.snap_step)                                            # the pixels snapped later
-    Kq = Ks.copy()
-    Kq[:2] /= q
-    fusion.pending.append((np.ascontiguousarray(np.where(depth > 0, depth, np.float32(0))[::q, ::q], np.float32),
-                           Kq, np.asarray(T_world_cam2, dtype=np.float64)))
-    return int(ok.sum())
-
-
-def due_surface_points(fusion: SurfaceFusion, flush: bool = False) -> list[np.ndarray]:
-    """World points (N, 3) metres, one array per frame fused ``lag`` frames ago (``flush``: every frame still
-    pending), of its pixels' depths snapped to the fused surface (:meth:`SurfaceFusion.snap_depths`); pixels
-    with no surface within ``snap_window`` give none. Those frames leave the queue."""
-    out = []
-    while fusion.pending and (flush or len(fusion.pending) > fusion.cfg.lag):
-        depth, Ks, T = fusion.pending.pop(0)
-        z = fusion.snap_depths(depth, Ks, T, fusion.cfg.snap_window)
-        if fusion.cfg.gate > 0:     # the fused surface confirms the pixel's own depth instead of replacing it
-            z = np.where((z > 0) & (np.abs(z - depth) <= fusion.cfg.gate * fusion.res), depth, np.float32(0.0))
-        v, u = np.nonzero(z > 0)
-        zz = z[v, u].astype(np.float64)
-        cam = np.stack([(u - Ks[0, 2]) / Ks[0, 0] * zz, (v - Ks[1, 2]) / Ks[1, 1] * zz, zz], axis=1)
-        out.append(cam @ T[:3, :3].T + T[:3, 3])
-    return out

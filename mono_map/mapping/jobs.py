@@ -149,7 +149,7 @@ class MapJob:
                        "distribution": dataclasses.asdict(self.distribution) if self.distributional else None}
         if self.is_fused:                 # only fused maps carry the key: the other maps' keys stay as they were
             integration["fused"] = dataclasses.asdict(self.fused)
-            for name in ("stereo", "gate"):   # off: the keys of the fused maps made before the option existed
+            for name in ("stereo", "gate", "euclid"):   # off: the keys of fused maps made before the option existed
                 if not getattr(self.fused, name):
                     integration["fused"].pop(name)
         return {"data_root": self.data_root, "sequence": self.sequence, "synthetic": dict(self.synthetic) or None,
