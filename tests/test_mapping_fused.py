@@ -327,7 +327,7 @@ def test_the_gate_keeps_a_pixels_own_depth_where_the_fused_surface_confirms_it(g
         fusion.integrate(wall, np.ones_like(wall), np.full_like(wall, 0.6), K, np.eye(4))
     fusion.pending.clear()
     ask = np.where(np.arange(W)[None, :] < W // 2, np.float32(10.1), np.float32(10.9)) * np.ones((H, 1), np.float32)
-    fusion.pending.append((ask, K, np.eye(4)))
+    fusion.pending.append((ask, K, np.eye(4), None))
     pts = np.concatenate(due_surface_points(fusion, flush=True))
     z = pts[:, 2]
     if gate:                      # (the image's last row sees no voxel of its own)

@@ -187,7 +187,8 @@ class SurfaceFusion:
             attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32), attr_channels=((1), (1)),
             voxel_size=self.res, block_resolution=self.BLOCK, block_count=int(initial_blocks), device=self.device)
         self.frames = 0
-        self.pending: list[tuple] = []     # frames fused, not yet snapped: (depth grid, K of the grid, pose)
+        self.pending: list[tuple] = []     # frames fused, not yet snapped: (depth grid, K of the grid, pose,
+                                           # its normals or None)
 
     def integrate(self, depth: np.ndarray, weight: np.ndarray, trunc: np.ndarray, K: np.ndarray,
                   T_world_cam: np.ndarray, fine: tuple | None = None, normals: np.ndarray | None = None) -> int:

@@ -48,13 +48,15 @@ def fuse_prediction(fusion: SurfaceFusion, pred, valid: np.ndarray, K: np.ndarra
         full = np.asarray(pred.depth, dtype=np.float32)
         okf = np.repeat(np.repeat(ok, s, axis=0), s, axis=1)[:full.shape[0], :full.shape[1]]
         fine = (np.where(okf & (full > 0), full, np.float32(0.0)), np.asarray(K, dtype=np.float64), s)
-    normals = depth_normals(d, Ks)[0] if cfg.euclid else None
+    # the surface's normals (euclid): of every pixel with a depth, the fused ones and those only snapped
+    normals = depth_normals(np.where(depth > 0, depth, np.float32(0.0)), Ks)[0] if cfg.euclid else None
     fusion.integrate(d, pixel_weights(spread, cfg), trunc, Ks, T_world_cam2, fine, normals)
     q = int(cfg.snap_step)                                            # the pixels snapped later
     Kq = Ks.copy()
     Kq[:2] /= q
     fusion.pending.append((np.ascontiguousarray(np.where(depth > 0, depth, np.float32(0))[::q, ::q], np.float32),
-                           Kq, np.asarray(T_world_cam2, dtype=np.float64)))
+                           Kq, np.asarray(T_world_cam2, dtype=np.float64),
+                           None if normals is None else np.ascontiguousarray(normals[::q, ::q])))
     return int(ok.sum())
 
 
@@ -64,8 +66,7 @@ def due_surface_points(fusion: SurfaceFusion, flush: bool = False) -> list[np.nd
     with no surface within ``snap_window`` give none. Those frames leave the queue."""
     out = []
     while fusion.pending and (flush or len(fusion.pending) > fusion.cfg.lag):
-        depth, Ks, T = fusion.pending.pop(0)
-        normals = depth_normals(depth, Ks)[0] if fusion.cfg.euclid else None
+        depth, Ks, T, normals = fusion.pending.pop(0)
         z = fusion.snap_depths(depth, Ks, T, fusion.cfg.snap_window, normals=normals)
         if fusion.cfg.gate > 0:     # the fused surface confirms the pixel's own depth instead of replacing it
             z = np.where((z > 0) & (np.abs(z - depth) <= fusion.cfg.gate * fusion.res), depth, np.float32(0.0))
