@@ -62,19 +62,21 @@ def stats(xs: list[float]) -> str:
 def main() -> None:
     import torch
 
+    from mono_map.cli.options import add_data_root, add_seq, add_threads, check_threads
     from mono_map.data.kitti import open_sequence
     from mono_map.mapping.fused import FusedConfig, SurfaceFusion
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data-root", default="data/kitti")
-    p.add_argument("--seq", default="06")
+    add_data_root(p)
+    add_seq(p, default="06", help="synthetic sequence name under the data root (its depth_2 is fused)")
     p.add_argument("--fuse", type=int, default=10, help="frames fused (from 0)")
     p.add_argument("--frame", type=int, default=5, help="the frame whose snap points are read")
     p.add_argument("--runs", type=int, default=5)
-    p.add_argument("--threads", type=int, default=2)
+    add_threads(p, default=2)
     p.add_argument("--build", default=None, help="also time whole fused builds of these frames (e.g. 40:70)")
     p.add_argument("--build-runs", type=int, default=3)
     a = p.parse_args()
+    check_threads(a.threads)
     torch.set_num_threads(a.threads)
     seq = open_sequence(a.data_root, a.seq)
     if seq.depth(0) is None:
@@ -133,4 +135,9 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from mono_map.errors import MonoMapError
+
+    try:
+        main()
+    except MonoMapError as e:
+        raise SystemExit(f"bench_fused_sample: {e}")
