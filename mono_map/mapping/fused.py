@@ -22,7 +22,8 @@ no fused surface near them give no hit. Cells are then occupied by OctoMap's own
 the views that agree on a surface against the free half's misses; a frame's rays never free the cells
 they end on (the free half has no update there).
 Voxel (i, j, k) of the grid is OctoMap key (i, j, k) + 32768: the signed distance is evaluated at the
-cell's centre. Settings chosen on training town 06 (``tools/tune_fused.py``), never on 00.
+cell's centre. Settings chosen on training town 06 (``tools/tune_fused.py``), never on 00. A frame's
+prediction goes in and its hits come out through :mod:`mono_map.mapping.fused_frames`.
 """
 
 from __future__ import annotations
@@ -277,7 +278,7 @@ class SurfaceFusion:
 
     def sample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(tsdf, summed weight) float32 of the cells holding world ``points`` (N, 3) metres; weight 0 where the
-        TSDF has no voxel. Every point's block is looked up in open3d's hash map (multi-threaded; ~8× faster
+        TSDF has no voxel. Every point's block is looked up in open3d's hash map (multi-threaded; 2.4× faster
         than finding the distinct blocks first: ``benchmarks/bench_fused_sample.py``)."""
         o3c = self.o3c
         lat = np.floor(np.asarray(points, dtype=np.float64) / self.res).astype(np.int64)   # the cell = the voxel
