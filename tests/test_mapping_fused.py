@@ -400,3 +400,20 @@ def test_normals_of_a_depth_image_take_the_surface_each_pixel_is_on():
     ray_y = (np.arange(40)[:, None] - 10.0) / 100.0 * np.ones((1, 100))
     assert np.allclose(n[road], [0, -1, 0], atol=1e-3) and np.allclose(cos[road], ray_y[road], rtol=1e-3)
     assert np.allclose(n[wall], [0, 0, -1], atol=1e-3) and np.allclose(cos[wall], 1.0, atol=1e-5)
+
+
+def test_the_hit_cell_tool_counts_more_own_cells_along_the_normal(tiny_root):
+    """tools/fused_hit_cells.py on tiny's exact depth: shares in [0, 1], more hits in their own cell along the
+    normal than along the optical axis, and a picture of the first checked frame."""
+    from mono_map.data.kitti import open_sequence
+    from tool_loader import load_tool
+
+    tool = load_tool("fused_hit_cells")
+    seq = open_sequence(tiny_root, "tiny")
+    (axis,), pic_axis = tool.hit_cells(seq, list(range(6)), [3], euclid=False)
+    (normal,), pic_normal = tool.hit_cells(seq, list(range(6)), [3], euclid=True)
+    for r in (axis, normal):
+        assert 0 <= r["no_hit"] < 0.2 and 0 <= r["own"] <= 1
+    assert normal["own"] > axis["own"]
+    assert pic_axis.shape == pic_normal.shape == seq.depth(3)[::2, ::2].shape
+    assert np.nanmedian(np.abs(pic_normal[np.isfinite(pic_normal)])) < 0.05
