@@ -377,8 +377,9 @@ def test_on_a_road_seen_at_grazing_angles_the_normal_puts_each_hit_in_its_own_ce
     assert len(v) > 0.8 * (d > 0).sum()
 
     def cells(zz):
-        cam = np.stack([(u - Kr[0, 2]) / Kr[0, 0] * zz, (v - Kr[1, 2]) / Kr[1, 1] * zz, zz], axis=1)
-        return np.floor((cam + T[:3, 3]) / res).astype(np.int64)
+        from mono_map.geometry import backproject_pixels, transform_points
+
+        return np.floor(transform_points(T, backproject_pixels(Kr, u, v, zz)) / res).astype(np.int64)
 
     own = (cells(z[v, u]) == cells(d[v, u])).all(axis=1).mean()
     if euclid:

@@ -29,7 +29,7 @@ RES, STEP, GRAZING = 0.2, 2, 0.2
 def hit_cells(seq, frames: list[int], check: list[int], euclid: bool) -> tuple[list[dict], dict]:
     """Fuse ``frames``' exact depth; per ``check`` frame the shares of pixels (own cell, grazing own cell, no hit)
     and, for the first, the snapped-minus-true depth image (NaN: no hit or no depth)."""
-    from mono_map.geometry import depth_normals
+    from mono_map.geometry import backproject_pixels, depth_normals, transform_points
     from mono_map.mapping.fused import FusedConfig, SurfaceFusion
 
     cfg = FusedConfig(euclid=int(euclid), multiview=0)
@@ -52,8 +52,7 @@ def hit_cells(seq, frames: list[int], check: list[int], euclid: bool) -> tuple[l
         v, u = np.nonzero(d > 0)
 
         def cells(zz):
-            cam = np.stack([(u - K[0, 2]) / K[0, 0] * zz, (v - K[1, 2]) / K[1, 1] * zz, zz], axis=1)
-            return np.floor((cam @ T[:3, :3].T + T[:3, 3]) / RES).astype(np.int64)
+            return np.floor(transform_points(T, backproject_pixels(K, u, v, zz)) / RES).astype(np.int64)
 
         zz, dd = z[v, u], d[v, u]
         has = zz > 0

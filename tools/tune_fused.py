@@ -16,6 +16,7 @@ the noisy ground-truth stand-in (:mod:`mono_map.mapping.oracle`).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import sys
 from pathlib import Path
@@ -35,9 +36,7 @@ from mono_map.mapping.fused import FusedConfig  # noqa: E402
 from mono_map.mapping.octree import tree_leaves  # noqa: E402
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor  # noqa: E402
 
-GRID = ("spread_ref", "min_weight", "trunc_sigma", "trunc_min", "trunc_max", "trunc_behind", "max_depth",
-        "max_spread", "lag", "snap_window", "snap_step", "multiview", "multiview_temperature", "subpixel", "mode",
-        "stereo", "gate", "euclid")
+GRID = tuple(f.name for f in dataclasses.fields(FusedConfig))      # every fused setting is a --NAME comma list
 
 
 def score(tree, ref, surf) -> dict:

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mono_map.errors import MonoMapError
+from mono_map.geometry import backproject_pixels
 
 
 @dataclass(frozen=True)
@@ -257,10 +258,7 @@ class SurfaceFusion:
         if normals is None:
             sdf = d - z
         elif fine is None:                  # to the plane through the pixel's surface point
-            n = normals[v, u]
-            pix = np.stack([(u - np.float32(K[0, 2])) / np.float32(K[0, 0]) * d,
-                            (v - np.float32(K[1, 2])) / np.float32(K[1, 1]) * d, d], axis=1)
-            sdf = (n * (pc[sel] - pix)).sum(axis=1)
+            sdf = (normals[v, u] * (pc[sel] - backproject_pixels(K, u, v, d))).sum(axis=1)
         else:                               # the surface point on the voxel's own ray
             sdf = -(normals[v, u] * (pc[sel] / z[:, None])).sum(axis=1) * (d - z)
         keep = (d > 0) & (sdf >= -self.cfg.trunc_behind * tau)

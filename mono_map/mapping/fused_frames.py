@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from mono_map.errors import MonoMapError
-from mono_map.geometry import depth_normals
+from mono_map.geometry import backproject_pixels, depth_normals, transform_points
 from mono_map.mapping.fused import SurfaceFusion, log_spread, mode_shift, pixel_weights
 
 
@@ -71,7 +71,5 @@ def due_surface_points(fusion: SurfaceFusion, flush: bool = False) -> list[np.nd
         if fusion.cfg.gate > 0:     # the fused surface confirms the pixel's own depth instead of replacing it
             z = np.where((z > 0) & (np.abs(z - depth) <= fusion.cfg.gate * fusion.res), depth, np.float32(0.0))
         v, u = np.nonzero(z > 0)
-        zz = z[v, u].astype(np.float64)
-        cam = np.stack([(u - Ks[0, 2]) / Ks[0, 0] * zz, (v - Ks[1, 2]) / Ks[1, 1] * zz, zz], axis=1)
-        out.append(cam @ T[:3, :3].T + T[:3, 3])
+        out.append(transform_points(T, backproject_pixels(Ks, u, v, z[v, u])))
     return out
