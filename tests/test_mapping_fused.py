@@ -418,3 +418,38 @@ def test_the_hit_cell_tool_counts_more_own_cells_along_the_normal(tiny_root):
     assert normal["own"] > axis["own"]
     assert pic_axis.shape == pic_normal.shape == seq.depth(3)[::2, ::2].shape
     assert np.nanmedian(np.abs(pic_normal[np.isfinite(pic_normal)])) < 0.05
+
+
+@pytest.mark.parametrize("euclid", [0, 1])
+def test_the_compiled_snap_gives_the_numpy_forms_depths(euclid, monkeypatch):
+    """The two compiled passes of the snap (csrc/fused.c) against the numpy form: a road and a wall in front
+    of a camera moving forward and to the side (cells at negative coordinates too), fused from noisy frames,
+    snapped along the axis and along the normals: the same pixels found, the same depths (float64 rounding)."""
+    from mono_map.geometry import depth_normals
+    from mono_map.mapping import fused_c
+
+    if fused_c.library() is None:
+        pytest.fail("the compiled snap did not load (compiler missing?)")
+    Kr = np.array([[180.0, 0.0, 155.0], [0.0, 180.0, 47.0], [0.0, 0.0, 1.0]])
+    h, w, res = 94, 310, 0.2
+    rng = np.random.default_rng(euclid)
+    fusion = SurfaceFusion(FusedConfig(euclid=euclid, lag=0), res, initial_blocks=2048)
+    frames = []
+    for k in range(6):
+        T = np.eye(4)
+        T[0, 3], T[1, 3], T[2, 3] = -0.3 * k, 0.013 * k, 0.37 * k
+        d = road_depth(Kr, h, w, 1.65 - T[1, 3])
+        d = np.where((d == 0) | (d > 12 - T[2, 3]), np.float32(12 - T[2, 3]), d)       # a wall at z = 12 m
+        d = (d * np.exp(rng.normal(0, 0.02, d.shape))).astype(np.float32)
+        fusion.integrate(d, np.ones_like(d), np.full_like(d, 0.6), Kr, T, None,
+                         depth_normals(d, Kr)[0] if euclid else None)
+        frames.append((d, T))
+    d, T = frames[2]
+    normals = depth_normals(d, Kr)[0] if euclid else None
+    compiled = fusion.snap_depths(d, Kr, T, 1.0, normals=normals)
+    monkeypatch.setattr(fused_c, "library", lambda: None)
+    numpy_form = fusion.snap_depths(d, Kr, T, 1.0, normals=normals)
+    found = numpy_form > 0
+    assert found.sum() > 0.5 * (d > 0).sum()
+    assert np.array_equal(compiled > 0, found)
+    assert np.abs(compiled - numpy_form).max() < 1e-4

@@ -152,3 +152,35 @@ def test_bad_multiview_settings_are_one_line(kw, option):
 def test_bad_fused_multiview_settings_are_one_line(field, value, option):
     with pytest.raises(MonoMapError, match="^" + option + ":"):
         check_fused_config(FusedConfig(**{field: value}))
+
+
+@pytest.mark.parametrize("power", [1.0, 2.0])
+def test_the_posterior_and_its_moment_changes_are_the_definitions(power):
+    """posterior_change against the definitions: q ∝ p^a·exp(ℓ) where informative (and the product has mass),
+    the prior elsewhere; the change of Σ q log c and of −Σ q log q (x·log x per bin) against the prior's; bins
+    with zero prior mass included."""
+    from mono_map.depth.multiview import posterior_change
+
+    rng = np.random.default_rng(int(power))
+    h, w, k = 7, 9, BINS.num_bins
+    p = rng.gamma(0.3, size=(h, w, k)) * (rng.random((h, w, k)) > 0.3)
+    p[0, 0] = 0.0
+    p[0, 0, 5] = 1.0                                           # a point mass
+    p = (p / p.sum(-1, keepdims=True)).astype(np.float32)
+    ll = -rng.exponential(3.0, size=(h, w, k)).astype(np.float32)
+    info = rng.random((h, w)) > 0.3
+    q, dm, de = posterior_change(torch.from_numpy(p), torch.from_numpy(ll), torch.from_numpy(info),
+                                 BINS.log_centres, power)
+    q, dm, de = q.numpy(), dm.numpy(), de.numpy()
+    p64 = p.astype(np.float64)
+    want = p64 ** power * np.exp(ll.astype(np.float64))
+    want = np.where(info[..., None], want / want.sum(-1, keepdims=True), p64)
+    assert np.abs(q - want).max() < 1e-5
+    lc = np.asarray(BINS.log_centres, dtype=np.float64)
+
+    def entropy(x):
+        return -np.where(x > 0, x * np.log(np.where(x > 0, x, 1.0)), 0.0).sum(-1)
+    assert np.abs(dm - (want @ lc - p64 @ lc)).max() < 1e-4
+    assert np.abs(de - (entropy(want) - entropy(p64))).max() < 1e-4
+    assert (dm[~info] == 0).all() and (de[~info] == 0).all() and np.array_equal(q[~info], p[~info])
+    assert np.abs(de[info]).max() > 0.1                        # the test has something to compare

@@ -191,19 +191,19 @@ def likelihood_of_groups(groups: list, temperature: float, window: int = 1):
     return (best.unsqueeze(0) - c) / float(temperature), informative
 
 
-def parabola_peak(values, log_centres: np.ndarray):
-    """The log-depth of the peak per pixel (h,w) tensor of ``values`` (D,h,w) tensor over the evenly spaced
-    ``log_centres`` (D,) (log metres; a sweep's planes or the depth bins): the highest one's centre refined by a
-    parabola through it and its two neighbours (at most half a spacing; none at the first and last centre or
-    where the peak is flat). A sweep's best plane from its log-likelihood; a distribution's mode from its bin
-    probabilities."""
+def parabola_peak(values, log_centres: np.ndarray, dim: int = 0):
+    """The log-depth of the peak per pixel (h,w) tensor of ``values`` (D,h,w) tensor (the D values along
+    ``dim``) over the evenly spaced ``log_centres`` (D,) (log metres; a sweep's planes or the depth bins): the
+    highest one's centre refined by a parabola through it and its two neighbours (at most half a spacing; none
+    at the first and last centre or where the peak is flat). A sweep's best plane from its log-likelihood; a
+    distribution's mode from its bin probabilities."""
     import torch
 
     lc = torch.as_tensor(np.asarray(log_centres, dtype=np.float32))
     D = lc.numel()
-    k = values.argmax(0)
+    k = values.argmax(dim)
     km, kp = (k - 1).clamp_min(0), (k + 1).clamp_max(D - 1)
-    l0, lm, lp = (values.gather(0, i.unsqueeze(0))[0] for i in (k, km, kp))
+    l0, lm, lp = (values.gather(dim, i.unsqueeze(dim)).squeeze(dim) for i in (k, km, kp))
     curv = lm - 2 * l0 + lp
     inner = (k > 0) & (k < D - 1) & (curv < 0)
     offset = torch.where(inner, 0.5 * (lm - lp) / torch.where(inner, curv, torch.ones_like(curv)),
@@ -212,20 +212,32 @@ def parabola_peak(values, log_centres: np.ndarray):
     return lc[k] + offset * step
 
 
-def posterior(prior, loglik, informative, prior_power: float = 1.0):
-    """Posterior bin probabilities (K,h,w) float32 tensor: p^a·exp(``loglik``), normalised, where
-    ``informative`` (h,w bool tensor) and the product has mass; the ``prior`` (K,h,w tensor) elsewhere."""
+def posterior_change(prior, loglik, informative, log_centres: np.ndarray, prior_power: float = 1.0):
+    """The posterior p^a·exp(``loglik``), normalised, where ``informative`` and the product has mass, the
+    prior elsewhere; the bins last: ``prior`` and ``loglik`` (h,w,K) float32 tensors, ``informative`` (h,w)
+    bool. Returns (posterior (h,w,K), its change of the expected log-depth (h,w), of the entropy (h,w)
+    nats against the prior; 0 where the prior is kept). The entropy from the logarithms the posterior is made
+    of: log q = a·log p + ℓ − log Σ, so −Σ q log q = log Σ − Σ q (a·log p + ℓ) (one logarithm per bin for both
+    entropies instead of two x·log x passes)."""
     import torch
 
-    q = (prior if prior_power == 1 else prior.pow(float(prior_power))) * torch.exp(loglik)
-    mass = q.sum(0)
+    a = float(prior_power)
+    lc = torch.as_tensor(np.asarray(log_centres, dtype=np.float32))
+    logp = torch.log(prior.clamp_min(1e-30))                 # p = 0 contributes p·log p = 0 below
+    q = (prior if a == 1 else torch.exp(logp * a)) * torch.exp(loglik)
+    mass = q.sum(-1)
     use = informative & (mass > 0)
-    return torch.where(use.unsqueeze(0), q / mass.clamp_min(1e-30).unsqueeze(0), prior)
+    q = torch.where(use.unsqueeze(-1), q / mass.clamp_min(1e-30).unsqueeze(-1), prior)
+    e0 = -(prior * logp).sum(-1)
+    e1 = mass.clamp_min(1e-30).log() - (q * (logp if a == 1 else logp * a).add_(loglik)).sum(-1)
+    dm = torch.where(use, (q - prior) @ lc, torch.zeros_like(mass))
+    de = torch.where(use, e1 - e0, torch.zeros_like(mass))
+    return q, dm, de
 
 
 def resample(x, size: tuple[int, int], full: tuple[int, int], step: int):
     """``x`` (C,h,w) torch (a grid covering a ``full`` (H, W) image) read bilinearly at the pixels
-    [::step, ::step] of the full image ((C,) + ``size``)."""
+    [::step, ::step] of the full image, channels last: ``size`` + (C,) (contiguous)."""
     import torch
     import torch.nn.functional as F
 
@@ -234,15 +246,9 @@ def resample(x, size: tuple[int, int], full: tuple[int, int], step: int):
     u = torch.arange(size[1], dtype=torch.float32) * step
     gy, gx = torch.meshgrid(2 * (v + 0.5) / H - 1, 2 * (u + 0.5) / W - 1, indexing="ij")
     grid = torch.stack([gx, gy], -1).unsqueeze(0)
-    return F.grid_sample(x.unsqueeze(0), grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
-
-
-def log_moments(probs, log_centres: np.ndarray):
-    """(expected log-depth, entropy nats) (h,w) tensors of bin probabilities (K,h,w) tensor."""
-    import torch
-
-    lc = torch.as_tensor(np.asarray(log_centres, dtype=np.float32)).view(-1, 1, 1)
-    return (probs * lc).sum(0), -torch.special.xlogy(probs, probs).sum(0)
+    out = F.grid_sample(x.unsqueeze(0).contiguous(memory_format=torch.channels_last), grid, mode="bilinear",
+                        padding_mode="border", align_corners=False)[0]
+    return out.permute(1, 2, 0).contiguous()
 
 
 class MultiviewPosterior:
@@ -315,15 +321,14 @@ class MultiviewPosterior:
                                   for j, right in g], self.bins.centres) for g in groups]
             ll, info = likelihood_of_groups(sweeps, self.cfg.temperature, int(self.cfg.window))
             step = int(pred.probs_step)
-            prior = torch.as_tensor(np.ascontiguousarray(pred.probs, dtype=np.float32))
-            size = tuple(prior.shape[1:])
-            ll = resample(ll, size, (H, W), step)
-            informative = resample(info.float().unsqueeze(0), size, (H, W), step)[0] > 0.5
-            q = posterior(prior, ll, informative, self.cfg.prior_power)
-            m0, e0 = log_moments(prior, self.bins.log_centres)
-            m1, e1 = log_moments(q, self.bins.log_centres)
-            dm, de = (m1 - m0).numpy(), (e1 - e0).numpy()
-            q = q.numpy()
+            # bins last: each pixel's K probabilities side by side (the predictor's sampled probabilities are
+            # stored so; a (K,h,w) view of them is channels-last)
+            prior = torch.from_numpy(np.ascontiguousarray(np.asarray(pred.probs, dtype=np.float32).transpose(1, 2, 0)))
+            size = tuple(prior.shape[:2])
+            informative = resample(info.float().unsqueeze(0), size, (H, W), step)[..., 0] > 0.5
+            q, dm, de = posterior_change(prior, resample(ll, size, (H, W), step), informative,
+                                         self.bins.log_centres, self.cfg.prior_power)
+            dm, de, q = dm.numpy(), de.numpy(), q.numpy().transpose(2, 0, 1)
         self.last_informative = float(informative.float().mean())
         rows = np.minimum(np.arange(H) // step, size[0] - 1)
         cols = np.minimum(np.arange(W) // step, size[1] - 1)
@@ -331,6 +336,4 @@ class MultiviewPosterior:
         dent = de[rows][:, cols]
         depth = np.where(pred.depth > 0, pred.depth * ratio, pred.depth).astype(np.float32)
         entropy = (np.asarray(pred.entropy, dtype=np.float32) + dent).astype(np.float32)
-        if q.ndim == 3 and step > 1:   # channels-last memory, as the predictor's sampled probabilities
-            q = np.moveaxis(np.ascontiguousarray(np.moveaxis(q, 0, -1)), -1, 0)
         return dataclasses.replace(pred, depth=depth, entropy=entropy, probs=q)

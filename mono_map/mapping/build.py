@@ -190,13 +190,25 @@ class MapBuilder:
             self.surface_points += len(keys)
         return res
 
+    def prediction(self, i: int, inputs: FrameInputs):
+        """Frame ``i``'s depth prediction for this map: the predictor's, refined by the multi-view posterior if
+        the map has one (once per frame for the maps of a pass that share it)."""
+        pred = inputs.prediction(self.predictor)
+        if self.multiview is None:
+            return pred
+        return inputs.shared(("multiview", id(self.predictor), self.multiview.cfg),
+                             lambda: self.multiview.refine(self.seq, i, pred))
+
+    def prepare(self, i: int, inputs: FrameInputs) -> None:
+        """The part of frame ``i``'s work that needs no map (its prediction and posterior), so that it can run
+        ahead, beside the previous frame's integration (:func:`~mono_map.mapping.pipeline.run_builders`)."""
+        if self.kind.predicted:
+            self.prediction(i, inputs)
+
     def mono_measurement(self, i: int, T_world_cam2: np.ndarray, inputs: FrameInputs) -> Measurement:
         """Predict image_2's depth distribution, keep the lowest-entropy pixels, back-project them."""
         image = inputs.image()
-        pred = inputs.prediction(self.predictor)
-        if self.multiview is not None:                 # once per frame for the maps of a pass that share it
-            pred = inputs.shared(("multiview", id(self.predictor), self.multiview.cfg),
-                                 lambda: self.multiview.refine(self.seq, i, pred))
+        pred = self.prediction(i, inputs)
         depth = np.asarray(pred.depth, dtype=np.float32)
         entropy = np.asarray(pred.entropy, dtype=np.float32)
         if depth.shape != image.shape[:2] or entropy.shape != image.shape[:2]:

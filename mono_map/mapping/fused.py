@@ -35,6 +35,7 @@ import numpy as np
 
 from mono_map.errors import MonoMapError
 from mono_map.geometry import backproject_pixels
+from mono_map.mapping import fused_c
 
 
 @dataclass(frozen=True)
@@ -132,17 +133,27 @@ def check_fused_config(cfg: FusedConfig) -> FusedConfig:
     return cfg
 
 
+def bins_last(probs: np.ndarray) -> np.ndarray:
+    """Bin probabilities (K, ...) as float32 (..., K): a view, contiguous for the predictor's probabilities
+    (each pixel's K values side by side), so sums over the bins are dot products over contiguous memory."""
+    return np.moveaxis(np.asarray(probs, dtype=np.float32), 0, -1)
+
+
+def log_centres(edges: np.ndarray) -> np.ndarray:
+    """(K,) float32 log-depth centres of bins with ``edges`` (K+1,) metres."""
+    le = np.log(np.asarray(edges, dtype=np.float64))
+    return (0.5 * (le[:-1] + le[1:])).astype(np.float32)
+
+
 def log_spread(probs: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Per-pixel standard deviation of log-depth (float32, shape of ``probs`` without its first axis) of bin
     probabilities ``probs`` (K, ...) over bins with ``edges`` (K+1,) metres, each bin's mass at its log
     centre (the bins' own width is not added: a point mass in one bin has spread 0). Rows summing to 0: 0."""
-    p = np.asarray(probs, dtype=np.float32)
-    le = np.log(np.asarray(edges, dtype=np.float64))
-    lc = (0.5 * (le[:-1] + le[1:])).astype(np.float32).reshape((-1,) + (1,) * (p.ndim - 1))
-    mass = p.sum(axis=0)
+    p, lc = bins_last(probs), log_centres(edges)
+    mass = p.sum(axis=-1)
     safe = np.where(mass > 0, mass, 1.0)
-    m1 = (p * lc).sum(axis=0) / safe
-    m2 = (p * (lc * lc)).sum(axis=0) / safe
+    m1 = (p @ lc) / safe
+    m2 = (p @ (lc * lc)) / safe
     return np.sqrt(np.maximum(m2 - m1 * m1, 0.0)).astype(np.float32)
 
 
@@ -163,12 +174,10 @@ def mode_shift(probs: np.ndarray, edges: np.ndarray) -> np.ndarray:
 
     from mono_map.depth.multiview import parabola_peak
 
-    p = np.asarray(probs, dtype=np.float32)
-    le = np.log(np.asarray(edges, dtype=np.float64))
-    lc = (0.5 * (le[:-1] + le[1:])).astype(np.float32)
-    mode = parabola_peak(torch.as_tensor(p), lc).numpy()
-    mass = p.sum(axis=0)
-    mean = (p * lc.reshape((-1,) + (1,) * (p.ndim - 1))).sum(axis=0) / np.where(mass > 0, mass, 1.0)
+    p, lc = bins_last(probs), log_centres(edges)
+    mode = parabola_peak(torch.from_numpy(np.ascontiguousarray(p)), lc, dim=-1).numpy()
+    mass = p.sum(axis=-1)
+    mean = (p @ lc) / np.where(mass > 0, mass, 1.0)
     return np.where(mass > 0, mode - mean, 0.0).astype(np.float32)
 
 
@@ -278,7 +287,6 @@ class SurfaceFusion:
         """(tsdf, summed weight) float32 of the cells holding world ``points`` (N, 3) metres; weight 0 where the
         TSDF has no voxel. Every point's block is looked up in open3d's hash map (multi-threaded; 2.4× faster
         than finding the distinct blocks first: ``benchmarks/bench_fused_sample.py``)."""
-        o3c = self.o3c
         lat = np.floor(np.asarray(points, dtype=np.float64) / self.res).astype(np.int64)   # the cell = the voxel
         blk = lat >> 3
         loc = lat - (blk << 3)
@@ -286,13 +294,19 @@ class SurfaceFusion:
         w_out = np.zeros(len(lat), np.float32)
         if len(lat) == 0 or self.n_blocks == 0:
             return tsdf_out, w_out
-        buf, found = self.vbg.hashmap().find(o3c.Tensor(np.ascontiguousarray(blk, dtype=np.int32)))
-        b = np.where(found.numpy().astype(bool).reshape(-1), buf.numpy().astype(np.int64).reshape(-1), -1)
+        b = self.slots(blk)
         ok = b >= 0
         flat = b[ok] * self.BLOCK ** 3 + loc[ok, 0] + self.BLOCK * loc[ok, 1] + self.BLOCK ** 2 * loc[ok, 2]
         tsdf_out[ok] = self.vbg.attribute("tsdf").reshape((-1,)).numpy()[flat]
         w_out[ok] = self.vbg.attribute("weight").reshape((-1,)).numpy()[flat]
         return tsdf_out, w_out
+
+    def slots(self, blocks: np.ndarray) -> np.ndarray:
+        """The hash map's slot (int64 (N,); −1: no such block) of each block coordinate in ``blocks`` (N, 3)."""
+        if len(blocks) == 0 or self.n_blocks == 0:
+            return np.full(len(blocks), -1, np.int64)
+        buf, found = self.vbg.hashmap().find(self.o3c.Tensor(np.ascontiguousarray(blocks, dtype=np.int32)))
+        return np.where(found.numpy().astype(bool).reshape(-1), buf.numpy().astype(np.int64).reshape(-1), -1)
 
     def snap_depths(self, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
                     window: float, min_weight: float | None = None, normals: np.ndarray | None = None) -> np.ndarray:
@@ -310,10 +324,20 @@ class SurfaceFusion:
             return out
         n = int(math.ceil(window / self.res))
         offs = np.arange(-n, n + 1, dtype=np.float64) * self.res
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        lib = fused_c.library()
+        if lib is not None:                                   # the same in two compiled passes
+            nw = None if normals is None else normals[v, u].astype(np.float64) @ T[:3, :3].T
+            blk, loc, zs, step = fused_c.ray_samples(lib, u, v, depth[v, u].astype(np.float64), offs, K, T,
+                                                     self.res, nw)
+            out[v, u] = fused_c.crossings(lib, self.slots(blk), loc, zs, step,
+                                          self.vbg.attribute("tsdf").reshape((-1,)).numpy(),
+                                          self.vbg.attribute("weight").reshape((-1,)).numpy(),
+                                          self.cfg.trunc_max, thr)
+            return out
         z = depth[v, u].astype(np.float64)[:, None] + offs[None, :]            # (P, S) sample depths
         x = (u[:, None] - K[0, 2]) / K[0, 0] * z
         y = (v[:, None] - K[1, 2]) / K[1, 1] * z
-        T = np.asarray(T_world_cam, dtype=np.float64)
         pts = (np.stack([x, y, z], axis=-1) @ T[:3, :3].T + T[:3, 3]).reshape(-1, 3)
         t, w = self.sample(pts)
         # the cell's value holds at its centre: moved to the sample along this camera's axis (first order)

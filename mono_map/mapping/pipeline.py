@@ -48,7 +48,8 @@ def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], sho
     frame ahead in a second thread (the network releases the GIL, and so does the ray casting), so the
     next frame is predicted while the maps integrate this one; a builder's per-frame ``frame_s`` is its own
     work (selection, back-projection, integration; in a group of keep maps, :func:`share_ray_casts`, the
-    first map's includes the group's one selection and ray cast). The maps are the same as frame by frame.
+    first map's includes the group's one selection and ray cast); a map's work that needs no map (the
+    multi-view posterior of a fused map, ``MapBuilder.prepare``) runs ahead with the prediction. The maps are the same as frame by frame.
     Observers are closed at the end, also on error. Take each map with ``builder.result(frames)`` afterwards
     (one octree in memory at a time)."""
     steps = probs_steps(builders)
@@ -63,15 +64,21 @@ def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], sho
         desc = f"build {'+'.join(sources)}" + (f" ×{len(builders)}" if len(builders) > 1 else "")
         iterator = progress(frames, total=len(frames), desc=desc, unit="frame")
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mono-map-predict") if predictors else None
+
+    def ahead_of(i: int) -> FrameInputs:       # the frame's predictions and every map's work that needs no map
+        inputs = prepare_inputs(seq, i, steps, predictors)
+        for b in builders:
+            b.prepare(i, inputs)
+        return inputs
     try:
-        ahead = pool.submit(prepare_inputs, seq, frames[0], steps, predictors) if pool and frames else None
+        ahead = pool.submit(ahead_of, frames[0]) if pool and frames else None
         for n, i in enumerate(iterator):
             if pool is None:
                 inputs = FrameInputs(seq, i, steps)
             else:
                 inputs = ahead.result()
                 if n + 1 < len(frames):
-                    ahead = pool.submit(prepare_inputs, seq, frames[n + 1], steps, predictors)
+                    ahead = pool.submit(ahead_of, frames[n + 1])
             for b in builders:
                 b.step(i, inputs)
     finally:

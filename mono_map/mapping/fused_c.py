@@ -1,0 +1,66 @@
+"""The compiled snap of the fused surface (``csrc/fused.c``): :meth:`mono_map.mapping.fused.SurfaceFusion.snap_depths`
+in two passes around open3d's hash-map lookup — the samples along each pixel's ray (their blocks, their
+voxels, how far each cell's value moves to its sample), then the tsdf read and the zero crossing nearest each
+pixel's depth. The float64 operations of the numpy form in its order; ~1.2 M samples a frame without numpy's
+temporaries (``benchmarks/bench_fused_snap.py``). Metres; world = the sequence's first cam0 frame.
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import numpy as np
+
+from mono_map import ckernel
+
+_P, _I64, _D, _F = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_float
+_LIB: list = []
+
+
+def library():
+    """The compiled snap (ctypes library), or None (no compiler, or ``MONO_MAP_NO_C=1``)."""
+    if ckernel.disabled():
+        return None
+    if not _LIB:
+        _LIB.append(ckernel.load("fused", {
+            "mm_snap_samples": ([_I64, _P, _P, _P, _I64, _P, _P, _P, _P, _D, _P, _P, _P, _P], None),
+            "mm_snap_cross": ([_I64, _I64, _P, _P, _P, _P, _P, _P, _F, _F, _I64, _P], None)}))
+    return _LIB[0]
+
+
+def ray_samples(lib, u: np.ndarray, v: np.ndarray, z0: np.ndarray, offs: np.ndarray, K: np.ndarray,
+                T_world_cam: np.ndarray, res: float, normals_world: np.ndarray | None = None):
+    """Pass 1 for pixels (``u``, ``v``) int64 with depths ``z0`` float64 (P,), samples at ``z0 + offs`` (S,)
+    metres: (block coordinates (P·S, 3) int32, voxel index in its block (P·S,) int32, sample depths (P, S)
+    float64, step (P, S) float64: the sample's signed distance minus its cell centre's — along the camera's axis,
+    or along ``normals_world`` (P, 3) if given)."""
+    n, s = len(u), len(offs)
+    c = dict(u=np.ascontiguousarray(u, dtype=np.int64), v=np.ascontiguousarray(v, dtype=np.int64),
+             z0=np.ascontiguousarray(z0, dtype=np.float64), offs=np.ascontiguousarray(offs, dtype=np.float64),
+             k=np.ascontiguousarray(K, dtype=np.float64),
+             t=np.ascontiguousarray(np.asarray(T_world_cam, dtype=np.float64)[:3, :4]))
+    nw = None if normals_world is None else np.ascontiguousarray(normals_world, dtype=np.float64)
+    blk = np.empty((n * s, 3), np.int32)
+    loc = np.empty(n * s, np.int32)
+    zs = np.empty((n, s), np.float64)
+    step = np.empty((n, s), np.float64)
+    lib.mm_snap_samples(n, c["u"].ctypes.data, c["v"].ctypes.data, c["z0"].ctypes.data, s, c["offs"].ctypes.data,
+                        c["k"].ctypes.data, c["t"].ctypes.data, None if nw is None else nw.ctypes.data, float(res),
+                        blk.ctypes.data, loc.ctypes.data, zs.ctypes.data, step.ctypes.data)
+    return blk, loc, zs, step
+
+
+def crossings(lib, slots: np.ndarray, loc: np.ndarray, zs: np.ndarray, step: np.ndarray, tsdf: np.ndarray,
+              weight: np.ndarray, trunc_max: float, min_weight: float) -> np.ndarray:
+    """Pass 2: per pixel (row of ``zs`` (P, S)) the depth (float32, 0 = none) of the zero crossing (from ≥ 0 to
+    < 0, both samples with summed weight ≥ ``min_weight`` and depth > 0) nearest the middle sample, given each
+    sample's block slot ``slots`` (P·S,) int64 (−1: no block), its voxel ``loc`` and ``step``; ``tsdf`` and
+    ``weight``: open3d's attribute buffers (float32, 512 voxels a block), tsdf in units of ``trunc_max``."""
+    n, s = zs.shape
+    out = np.zeros(n, np.float32)
+    slots = np.ascontiguousarray(slots, dtype=np.int64)
+    tsdf = np.ascontiguousarray(tsdf, dtype=np.float32)
+    weight = np.ascontiguousarray(weight, dtype=np.float32)
+    lib.mm_snap_cross(n, s, slots.ctypes.data, loc.ctypes.data, zs.ctypes.data, step.ctypes.data, tsdf.ctypes.data,
+                      weight.ctypes.data, float(trunc_max), float(min_weight), (s - 1) // 2, out.ctypes.data)
+    return out
