@@ -26,7 +26,7 @@ CFLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math", "-Wa
           "-Werror=implicit-function-declaration")
 SOURCE_DIR = Path(__file__).resolve().parent / "csrc"      # the kernels' .c and .h files
 BUILT_DIR = Path(__file__).resolve().parent / "_lib"       # libraries built at install
-LIBRARIES = ("raycast", "points", "synth", "fused")                  # csrc/<name>.c, one library each
+LIBRARIES = ("raycast", "points", "synth", "fused", "sweep")                  # csrc/<name>.c, one library each
 
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"', re.MULTILINE)
 

@@ -184,3 +184,37 @@ def test_the_posterior_and_its_moment_changes_are_the_definitions(power):
     assert np.abs(de - (entropy(want) - entropy(p64))).max() < 1e-4
     assert (dm[~info] == 0).all() and (de[~info] == 0).all() and np.array_equal(q[~info], p[~info])
     assert np.abs(de[info]).max() > 0.1                        # the test has something to compare
+
+
+def test_the_compiled_sweep_gives_the_torch_forms_costs():
+    """csrc/sweep.c against the torch form of sweep_cost on the textured wall seen from two neighbours: the
+    same planes seen (inf patterns equal), costs within float rounding of the warp's homography (torch's
+    matmul sums in its own order), the unwarped error identical."""
+    from mono_map.depth import multiview, sweep_c
+
+    lib = sweep_c.library()
+    if lib is None:
+        pytest.fail("the compiled sweep did not load (compiler missing?)")
+    rng = np.random.default_rng(0)
+    h, w = 40, 96
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    tgt = torch.from_numpy(texture(u / 9.0, v / 7.0).astype(np.float32)).unsqueeze(0)
+    srcs = [torch.from_numpy(np.clip(texture(u / 9.0 + dx, v / 7.0) + rng.normal(0, 0.01, (h, w)), 0, 1)
+                             .astype(np.float32)).unsqueeze(0) for dx in (0.4, -0.3)]
+    Ks = np.array([[60.0, 0.0, 48.0], [0.0, 60.0, 20.0], [0.0, 0.0, 1.0]])
+    Ts = []
+    for t in ([2.0, 0.0, -0.8], [-1.6, 0.05, 1.2]):
+        T = np.eye(4)
+        T[:3, 3] = t
+        Ts.append(T)
+    c_c, i_c = multiview.sweep_cost(tgt, srcs, Ks, Ts, BINS.centres)
+    try:
+        sweep_c._LIB[:] = [None]
+        c_t, i_t = multiview.sweep_cost(tgt, srcs, Ks, Ts, BINS.centres)
+    finally:
+        sweep_c._LIB[:] = [lib]
+    seen = torch.isfinite(c_t)
+    assert 0.2 < seen.float().mean() < 1.0                     # some planes leave a source's image
+    assert torch.equal(torch.isfinite(c_c), seen)
+    assert (c_c[seen] - c_t[seen]).abs().max() < 1e-3
+    assert torch.equal(i_c, i_t)

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mono_map.errors import MonoMapError
+from mono_map.depth import sweep_c
 from mono_map.depth.sources import choose_sources
 from mono_map.geometry import scaled_intrinsics
 
@@ -134,9 +135,15 @@ def sweep_cost(target, sources: list, K: np.ndarray, T_src_tgt: list[np.ndarray]
     with relative poses ``T_src_tgt`` (4×4, target camera → source camera, metres) and intrinsics ``K`` (3×3
     of this grid), over fronto-parallel planes at ``depths`` (D,) metres. Returns (cost (D,h,w): per plane the
     minimum over the sources of the SSIM+L1 error, inf where no source sees the plane; identity (h,w): the
-    minimum error of the unwarped sources)."""
+    minimum error of the unwarped sources). Compiled (:mod:`mono_map.depth.sweep_c`) where it is available,
+    else in torch."""
     import torch
 
+    lib = sweep_c.library() if target.shape[1] > 1 and target.shape[2] > 1 else None
+    if lib is not None:                         # the same one plane at a time in C
+        cost, ident = sweep_c.sweep_cost(lib, target[0].numpy(), [s[0].numpy() for s in sources], K, T_src_tgt,
+                                         depths)
+        return torch.from_numpy(cost), torch.from_numpy(ident)
     D = len(depths)
     _, h, w = target.shape
     error = ssim_l1_against(target)
