@@ -453,3 +453,42 @@ def test_the_compiled_snap_gives_the_numpy_forms_depths(euclid, monkeypatch):
     assert found.sum() > 0.5 * (d > 0).sum()
     assert np.array_equal(compiled > 0, found)
     assert np.abs(compiled - numpy_form).max() < 1e-4
+
+
+@pytest.mark.parametrize("euclid", [0, 1])
+def test_the_compiled_tsdf_update_gives_the_numpy_forms_field(euclid, monkeypatch):
+    """SurfaceFusion.integrate's compiled update (csrc/fused.c) against its numpy form: the same noisy road and
+    wall fused into two grids, read back at every cell around the surfaces: the same summed weights (float32
+    sums of the same weights), the same signed distances to float rounding."""
+    from mono_map.geometry import backproject_pixels, depth_normals, transform_points
+    from mono_map.mapping import fused_c
+
+    lib = fused_c.library()
+    if lib is None:
+        pytest.fail("the compiled fused kernels did not load (compiler missing?)")
+    Kr = np.array([[180.0, 0.0, 155.0], [0.0, 180.0, 47.0], [0.0, 0.0, 1.0]])
+    h, w, res = 94, 310, 0.2
+    grids = {}
+    for name in ("compiled", "numpy"):
+        monkeypatch.setattr(fused_c, "library", (lambda: lib) if name == "compiled" else (lambda: None))
+        rng = np.random.default_rng(7)
+        fusion = SurfaceFusion(FusedConfig(euclid=euclid, lag=0), res, initial_blocks=2048)
+        for k in range(5):
+            T = np.eye(4)
+            T[0, 3], T[1, 3], T[2, 3] = -0.3 * k, 0.013 * k, 0.37 * k
+            d = road_depth(Kr, h, w, 1.65 - T[1, 3])
+            d = np.where((d == 0) | (d > 12 - T[2, 3]), np.float32(12 - T[2, 3]), d)
+            d = (d * np.exp(rng.normal(0, 0.02, d.shape))).astype(np.float32)
+            wgt = rng.uniform(0.2, 1.0, d.shape).astype(np.float32)
+            trunc = np.full_like(d, 0.6)
+            assert fusion.integrate(d, wgt, trunc, Kr, T, None, depth_normals(d, Kr)[0] if euclid else None) > 1000
+        grids[name] = fusion
+    v, u = np.mgrid[0:h:2, 0:w:2].reshape(2, -1)
+    d = road_depth(Kr, h, w, 1.65)[v, u]
+    d = np.where((d == 0) | (d > 12), np.float32(12), d)
+    pts = np.concatenate([transform_points(np.eye(4), backproject_pixels(Kr, u, v, d + dz)) for dz in
+                          np.arange(-0.8, 0.81, 0.2)])
+    (tc, wc), (tn, wn) = grids["compiled"].sample(pts), grids["numpy"].sample(pts)
+    assert (wn > 0).mean() > 0.5
+    assert np.array_equal(wc > 0, wn > 0) and np.abs(wc - wn).max() < 1e-5
+    assert np.abs(tc - tn).max() < 1e-5

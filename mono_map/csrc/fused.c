@@ -92,3 +92,56 @@ void mm_snap_cross(int64_t n, int64_t s, const int64_t *buf, const int32_t *loc,
         out[p] = isfinite(best) ? (float)zc : 0.0f;
     }
 }
+
+/* The TSDF update of one frame (SurfaceFusion.integrate without the sub-pixel depth): voxel j at vc (n x 3 world
+   lattice points, float32) with flattened index idx[j] moves into the camera (pc = R vc + t, the cell's centre;
+   float32), projects to the nearest pixel (kf: fx, cx, fy, cy as float32; rint: half to even) of the h x w grid,
+   and where it is in front, inside the image, the pixel has a depth d > 0 and the signed distance
+   sdf >= -trunc_behind * tau (the pixel's band) its tsdf and summed weight get clip(sdf, -tau, tau) / trunc_max
+   with the pixel's weight. sdf = d - z along the axis, or with normals (h x w x 3, float32; may be NULL) the
+   distance of the centre to the plane through the pixel's surface point (k: the grid's 3x3 intrinsics, float64).
+   Returns the number of voxels updated. */
+int64_t mm_tsdf_update(int64_t n, const float *vc, const int64_t *idx, const float *r, const float *t,
+                       const float *kf, const double *k, const float *depth, const float *trunc, const float *weight,
+                       const float *normals, int64_t h, int64_t w, float neg_behind, double trunc_max, float *tsdf,
+                       float *wsum) {
+    int64_t count = 0;
+    const double fx = k[0], skew = k[1], cx = k[2], fy = k[4], cy = k[5];
+    for (int64_t j = 0; j < n; j++) {
+        const float *p = vc + 3 * j;
+        float pc[3];
+        for (int q = 0; q < 3; q++) pc[q] = (p[0] * r[3 * q] + p[1] * r[3 * q + 1] + p[2] * r[3 * q + 2]) + t[q];
+        const float z = pc[2];
+        if (!(z > 1e-3f)) continue;
+        const float uf = rintf(kf[0] * pc[0] / z + kf[1]), vf = rintf(kf[2] * pc[1] / z + kf[3]);
+        if (!(uf >= 0.0f && uf < (float)w && vf >= 0.0f && vf < (float)h)) continue;
+        const int64_t pix = (int64_t)vf * w + (int64_t)uf;
+        const float d = depth[pix], tau = trunc[pix];
+        if (!(d > 0.0f)) continue;
+        float t_new;
+        if (normals == 0) {
+            const float sdf = d - z;
+            if (!(sdf >= neg_behind * tau)) continue;
+            const float c = sdf < -tau ? -tau : (sdf > tau ? tau : sdf);
+            t_new = c / (float)trunc_max;
+        } else {
+            const double zz = (double)d;
+            const double y = ((double)vf - cy) / fy * zz;
+            const double x = (((double)uf - cx) * zz - skew * y) / fx;
+            const float *m = normals + 3 * pix;
+            double sdf = (double)m[0] * ((double)pc[0] - x);
+            sdf += (double)m[1] * ((double)pc[1] - y);
+            sdf += (double)m[2] * ((double)pc[2] - zz);
+            if (!(sdf >= (double)(neg_behind * tau))) continue;
+            const double c = sdf < -(double)tau ? -(double)tau : (sdf > (double)tau ? (double)tau : sdf);
+            t_new = (float)(c / trunc_max);
+        }
+        const float wg = weight[pix];
+        const int64_t i = idx[j];
+        const float w_old = wsum[i], w_new = w_old + wg;
+        tsdf[i] = (tsdf[i] * w_old + t_new * wg) / (w_new > 0.0f ? w_new : 1.0f);
+        wsum[i] = w_new;
+        count++;
+    }
+    return count;
+}

@@ -233,6 +233,12 @@ class SurfaceFusion:
         R, t = T_cam_world[:3, :3].astype(np.float32), (T_cam_world[:3, 3] + 0.5 * self.res
                                                           * T_cam_world[:3, :3].sum(axis=1)).astype(np.float32)
         idx = vidx.numpy()
+        lib = fused_c.library() if fine is None else None
+        if lib is not None:                                 # the same in one compiled pass
+            return fused_c.tsdf_update(lib, vcoords.numpy(), idx, R, t, K, depth, trunc, weight, normals,
+                                       self.cfg.trunc_behind, self.cfg.trunc_max,
+                                       self.vbg.attribute("tsdf").reshape((-1,)).numpy(),
+                                       self.vbg.attribute("weight").reshape((-1,)).numpy())
         pc = vcoords.numpy() @ R.T + t
         z = pc[:, 2]
         front = z > 1e-3

@@ -1,8 +1,9 @@
-"""The compiled snap of the fused surface (``csrc/fused.c``): :meth:`mono_map.mapping.fused.SurfaceFusion.snap_depths`
-in two passes around open3d's hash-map lookup — the samples along each pixel's ray (their blocks, their
-voxels, how far each cell's value moves to its sample), then the tsdf read and the zero crossing nearest each
-pixel's depth. The float64 operations of the numpy form in its order; ~1.2 M samples a frame without numpy's
-temporaries (``benchmarks/bench_fused_snap.py``). Metres; world = the sequence's first cam0 frame.
+"""The compiled kernels of the fused surface (``csrc/fused.c``), numpy's operations in its order without its
+temporaries (``benchmarks/bench_fused_build.py``): :meth:`mono_map.mapping.fused.SurfaceFusion.snap_depths` in two
+passes around open3d's hash-map lookup — the samples along each pixel's ray (their blocks, their voxels, how far
+each cell's value moves to its sample), then the tsdf read and the zero crossing nearest each pixel's depth —,
+and :meth:`~mono_map.mapping.fused.SurfaceFusion.integrate`'s update of the voxels near a frame's surface.
+Metres; world = the sequence's first cam0 frame.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ def library():
     if not _LIB:
         _LIB.append(ckernel.load("fused", {
             "mm_snap_samples": ([_I64, _P, _P, _P, _I64, _P, _P, _P, _P, _D, _P, _P, _P, _P], None),
-            "mm_snap_cross": ([_I64, _I64, _P, _P, _P, _P, _P, _P, _F, _F, _I64, _P], None)}))
+            "mm_snap_cross": ([_I64, _I64, _P, _P, _P, _P, _P, _P, _F, _F, _I64, _P], None),
+            "mm_tsdf_update": ([_I64, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I64, _I64, _F, _D, _P, _P], _I64)}))
     return _LIB[0]
 
 
@@ -64,3 +66,26 @@ def crossings(lib, slots: np.ndarray, loc: np.ndarray, zs: np.ndarray, step: np.
     lib.mm_snap_cross(n, s, slots.ctypes.data, loc.ctypes.data, zs.ctypes.data, step.ctypes.data, tsdf.ctypes.data,
                       weight.ctypes.data, float(trunc_max), float(min_weight), (s - 1) // 2, out.ctypes.data)
     return out
+
+
+def tsdf_update(lib, vcoords: np.ndarray, vidx: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray,
+                depth: np.ndarray, trunc: np.ndarray, weight: np.ndarray, normals: np.ndarray | None,
+                trunc_behind: float, trunc_max: float, tsdf: np.ndarray, wsum: np.ndarray) -> int:
+    """One frame's TSDF update in place of open3d's buffers ``tsdf`` and ``wsum`` (float32, flattened): voxels at
+    ``vcoords`` (N, 3) float32 with flattened indices ``vidx`` (N,) int64, camera ``R`` (3×3), ``t`` (3,) float32
+    (world → camera, to the cells' centres), grid intrinsics ``K``; per pixel ``depth``, ``trunc``, ``weight``
+    (H, W) float32 and ``normals`` (H, W, 3) or None (:meth:`SurfaceFusion.integrate`). Returns voxels updated."""
+    h, w = depth.shape
+    c = [np.ascontiguousarray(a, dtype=np.float32) for a in (vcoords, R, t, depth, trunc, weight)]
+    idx = np.ascontiguousarray(vidx, dtype=np.int64)
+    K = np.asarray(K, dtype=np.float64)
+    kf = np.array([K[0, 0], K[0, 2], K[1, 1], K[1, 2]], dtype=np.float32)
+    k64 = np.ascontiguousarray(K)
+    nrm = None if normals is None else np.ascontiguousarray(normals, dtype=np.float32)
+    if not (tsdf.flags.c_contiguous and wsum.flags.c_contiguous and tsdf.dtype == wsum.dtype == np.float32):
+        raise ValueError("tsdf_update: the buffers must be contiguous float32 (views of open3d's)")
+    return int(lib.mm_tsdf_update(len(idx), c[0].ctypes.data, idx.ctypes.data, c[1].ctypes.data, c[2].ctypes.data,
+                                  kf.ctypes.data, k64.ctypes.data, c[3].ctypes.data, c[4].ctypes.data,
+                                  c[5].ctypes.data, None if nrm is None else nrm.ctypes.data, h, w,
+                                  float(np.float32(-trunc_behind)), float(trunc_max), tsdf.ctypes.data,
+                                  wsum.ctypes.data))
