@@ -187,9 +187,9 @@ def test_the_posterior_and_its_moment_changes_are_the_definitions(power):
 
 
 def test_the_compiled_sweep_gives_the_torch_forms_costs():
-    """csrc/sweep.c against the torch form of sweep_cost on the textured wall seen from two neighbours: the
-    same planes seen (inf patterns equal), costs within float rounding of the warp's homography (torch's
-    matmul sums in its own order), the unwarped error identical."""
+    """csrc/sweep.c against the torch forms on the textured wall seen from two neighbours: sweep_cost (the same
+    planes seen, costs within float rounding of the warp's homography — torch's matmul sums in its own order —,
+    the unwarped error identical), windowed_cost (windows 1, 3, 5) and resample to a finer grid."""
     from mono_map.depth import multiview, sweep_c
 
     lib = sweep_c.library()
@@ -207,14 +207,25 @@ def test_the_compiled_sweep_gives_the_torch_forms_costs():
         T = np.eye(4)
         T[:3, 3] = t
         Ts.append(T)
-    c_c, i_c = multiview.sweep_cost(tgt, srcs, Ks, Ts, BINS.centres)
-    try:
-        sweep_c._LIB[:] = [None]
-        c_t, i_t = multiview.sweep_cost(tgt, srcs, Ks, Ts, BINS.centres)
-    finally:
-        sweep_c._LIB[:] = [lib]
+
+    def both(f):
+        compiled = f()
+        try:
+            sweep_c._LIB[:] = [None]
+            return compiled, f()
+        finally:
+            sweep_c._LIB[:] = [lib]
+    (c_c, i_c), (c_t, i_t) = both(lambda: multiview.sweep_cost(tgt, srcs, Ks, Ts, BINS.centres))
     seen = torch.isfinite(c_t)
     assert 0.2 < seen.float().mean() < 1.0                     # some planes leave a source's image
     assert torch.equal(torch.isfinite(c_c), seen)
     assert (c_c[seen] - c_t[seen]).abs().max() < 1e-3
     assert torch.equal(i_c, i_t)
+    # the windowed cost and its reading at a finer grid's pixels, compiled and in torch, from the same sweep
+    for window in (1, 3, 5):
+        (wc, ic), (wt, it) = both(lambda: multiview.windowed_cost(c_t, i_t, window))
+        assert 0.5 < it.float().mean() < 1.0 and torch.equal(ic, it)      # both kinds of pixel
+        assert (wc - wt).abs().max() < 1e-6
+    (rc, rt) = both(lambda: multiview.resample(wt, (h // 2 + 1, w // 2), (2 * h, 2 * w), 4))
+    assert rc.shape == rt.shape == (h // 2 + 1, w // 2, len(BINS.centres))
+    assert (rc - rt).abs().max() < 1e-5

@@ -134,3 +134,89 @@ int mm_sweep_cost(int64_t h, int64_t w, const float *target, int64_t n_src, cons
     free(valid);
     return 0;
 }
+
+/* multiview.windowed_cost: planes no source sees (cost INFINITY) get the pixel's mean of the seen ones, then cost
+   (D x h x w) and ident (h x w) are averaged over window x window pixels (replicate padding; torch avg_pool2d's
+   row-major sum, / window^2) into c_out and ident_out; informative (h x w): at least half the planes seen and the
+   windowed identity above the best windowed plane. */
+void mm_windowed_cost(int64_t d_planes, int64_t h, int64_t w, const float *cost, const float *ident, int64_t window,
+                      float *c_out, float *ident_out, uint8_t *informative) {
+    const int64_t n = h * w, r = window / 2;
+    float *filled = (float *)malloc(sizeof(float) * (size_t)n * (size_t)d_planes);
+    float *nseen = (float *)malloc(sizeof(float) * (size_t)n);
+    float *mean = (float *)malloc(sizeof(float) * (size_t)n);
+    if (!filled || !nseen || !mean) {
+        free(filled);
+        free(nseen);
+        free(mean);
+        for (int64_t i = 0; i < n; i++) informative[i] = 0;
+        return;
+    }
+    for (int64_t i = 0; i < n; i++) nseen[i] = 0.0f, mean[i] = 0.0f;
+    for (int64_t k = 0; k < d_planes; k++) {
+        const float *c = cost + k * n;
+        for (int64_t i = 0; i < n; i++) {
+            const int seen = isfinite(c[i]);
+            nseen[i] += seen ? 1.0f : 0.0f;
+            mean[i] += seen ? c[i] : 0.0f;
+        }
+    }
+    for (int64_t i = 0; i < n; i++) mean[i] = mean[i] / (nseen[i] > 1.0f ? nseen[i] : 1.0f);
+    for (int64_t k = 0; k < d_planes; k++)
+        for (int64_t i = 0; i < n; i++) filled[k * n + i] = isfinite(cost[k * n + i]) ? cost[k * n + i] : mean[i];
+    const float area = (float)(window * window);
+    for (int64_t k = 0; k <= d_planes; k++) {          /* the planes, then the identity */
+        const float *src = k < d_planes ? filled + k * n : ident;
+        float *dst = k < d_planes ? c_out + k * n : ident_out;
+        for (int64_t v = 0; v < h; v++)
+            for (int64_t u = 0; u < w; u++) {
+                float sum = 0.0f;
+                for (int64_t dv = -r; dv <= r; dv++) {
+                    const int64_t vv = v + dv < 0 ? 0 : (v + dv >= h ? h - 1 : v + dv);
+                    for (int64_t du = -r; du <= r; du++) {
+                        const int64_t uu = u + du < 0 ? 0 : (u + du >= w ? w - 1 : u + du);
+                        sum += src[vv * w + uu];
+                    }
+                }
+                dst[v * w + u] = sum / area;
+            }
+    }
+    for (int64_t i = 0; i < n; i++) {
+        float best = INFINITY;
+        for (int64_t k = 0; k < d_planes; k++) best = c_out[k * n + i] < best ? c_out[k * n + i] : best;
+        informative[i] = (nseen[i] * 2.0f >= (float)d_planes) && (ident_out[i] > best);
+    }
+    free(filled);
+    free(nseen);
+    free(mean);
+}
+
+/* multiview.resample: x (h x w x c, channels last) read with grid_sample's bilinear weights and border clipping at
+   the full image's pixels (v step, u step) of an (full_h x full_w) image: out (out_h x out_w x c, channels last) */
+void mm_resample(int64_t h, int64_t w, int64_t c, const float *x, int64_t out_h, int64_t out_w, int64_t full_h,
+                 int64_t full_w, int64_t step, float *out) {
+    const float fh = (float)h, fw = (float)w;
+    for (int64_t v = 0; v < out_h; v++) {
+        const float gy = 2.0f * ((float)v * (float)step + 0.5f) / (float)full_h - 1.0f;
+        float iy = (gy + 1.0f) * (fh / 2.0f) - 0.5f;
+        iy = iy < 0.0f ? 0.0f : (iy > fh - 1.0f ? fh - 1.0f : iy);
+        const int64_t y0 = (int64_t)iy;
+        const float nth = iy - (float)y0, sth = (float)(y0 + 1) - iy;
+        const int in_y = y0 + 1 < h;
+        for (int64_t u = 0; u < out_w; u++) {
+            const float gx = 2.0f * ((float)u * (float)step + 0.5f) / (float)full_w - 1.0f;
+            float ix = (gx + 1.0f) * (fw / 2.0f) - 0.5f;
+            ix = ix < 0.0f ? 0.0f : (ix > fw - 1.0f ? fw - 1.0f : ix);
+            const int64_t x0 = (int64_t)ix;
+            const float we = ix - (float)x0, e = (float)(x0 + 1) - ix;
+            const int in_x = x0 + 1 < w;
+            const float a = sth * e, b = in_x ? sth * we : 0.0f, cc = in_y ? nth * e : 0.0f,
+                        dd = in_x && in_y ? nth * we : 0.0f;
+            const float *p00 = x + (y0 * w + x0) * c;
+            const float *p01 = in_x ? p00 + c : p00, *p10 = in_y ? p00 + w * c : p00;
+            const float *p11 = in_x && in_y ? p00 + (w + 1) * c : p00;
+            float *o = out + (v * out_w + u) * c;
+            for (int64_t k = 0; k < c; k++) o[k] = p00[k] * a + p01[k] * b + p10[k] * cc + p11[k] * dd;
+        }
+    }
+}

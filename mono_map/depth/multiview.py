@@ -169,6 +169,10 @@ def windowed_cost(cost, ident, window: int = 1):
     import torch
     import torch.nn.functional as F
 
+    lib = sweep_c.library()
+    if lib is not None:                         # the same in one compiled pass
+        c, _, info = sweep_c.windowed_cost(lib, cost.numpy(), ident.numpy(), window)
+        return torch.from_numpy(c), torch.from_numpy(info)
     seen = torch.isfinite(cost)
     n_seen = seen.float().sum(0)
     c = torch.where(seen, cost, torch.zeros_like(cost))
@@ -248,6 +252,9 @@ def resample(x, size: tuple[int, int], full: tuple[int, int], step: int):
     import torch
     import torch.nn.functional as F
 
+    lib = sweep_c.library()
+    if lib is not None and x.shape[1] > 1 and x.shape[2] > 1:
+        return torch.from_numpy(sweep_c.resample(lib, x.numpy(), size, full, step))
     H, W = full
     v = torch.arange(size[0], dtype=torch.float32) * step
     u = torch.arange(size[1], dtype=torch.float32) * step
