@@ -24,6 +24,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from mono_map.cli import options
+from mono_map.errors import MonoMapError
+from mono_map.frames import parse_frames
+
 
 def run_build(root: Path, args) -> tuple[float, float, int]:
     """(wall seconds, the build's frames/s, leaves) of one fused build from the checkout at ``root``."""
@@ -51,9 +55,9 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--baseline", required=True, help="checkout of the baseline (its mono_map/ is imported)")
     ap.add_argument("--candidate", default=".", help="checkout of the candidate (default: .)")
-    ap.add_argument("--data-root", required=True)
-    ap.add_argument("--seq", default="06")
-    ap.add_argument("--frames", default="40:70")
+    options.add_data_root(ap, required=True)
+    options.add_seq(ap, default="06")
+    options.add_frames(ap, default="40:70")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--warmup", type=int, default=1, help="untimed builds of each first (kernels compiled, files cached)")
     args = ap.parse_args(argv)
@@ -65,7 +69,11 @@ def main(argv=None) -> None:
         sys.exit(f"bench_fused_build: --data-root {args.data_root}: no such directory")
     if args.rounds < 1:
         sys.exit("bench_fused_build: --rounds must be at least 1")
-    n = len(range(*[int(x) for x in args.frames.split(":")]))
+    try:
+        sel = parse_frames(args.frames)
+    except MonoMapError as exc:
+        sys.exit(f"bench_fused_build: {exc}")
+    n = sel.needed() if sel.needed() is not None else "all"
     for _ in range(args.warmup):
         for root in roots.values():
             run_build(root, args)
@@ -76,7 +84,7 @@ def main(argv=None) -> None:
             wall, fps, leaves = runs[name][-1]
             print(f"round {r + 1} {name:9s}: {wall:6.1f} s wall, {fps:.2f} frames/s (build), {leaves:,} leaves",
                   flush=True)
-    print(f"\nseq {args.seq} frames {args.frames} ({n} frames), {args.rounds} rounds; min / median / max")
+    print(f"\nseq {args.seq} frames {args.frames} (up to frame {n}), {args.rounds} rounds; min / median / max")
     for name in roots:
         print(f"  {name:9s}: wall {spread([w for w, _, _ in runs[name]])} s, "
               f"build {spread([f for _, f, _ in runs[name]])} frames/s")

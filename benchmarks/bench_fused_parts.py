@@ -16,19 +16,22 @@ from collections import defaultdict
 
 import numpy as np
 
+from mono_map.cli import options
+from mono_map.data.kitti import open_sequence
+from mono_map.errors import MonoMapError
+from mono_map.frames import parse_frames
+from mono_map.mapping import build
+from mono_map.mapping.inputs import FrameInputs, probs_steps
+from mono_map.mapping.jobs import MapJob
+from mono_map.mapping.pipeline import make_builders
+
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data-root", required=True)
-    ap.add_argument("--seq", default="06")
-    ap.add_argument("--frames", default="40:70")
+    options.add_data_root(ap, required=True)
+    options.add_seq(ap, default="06")
+    options.add_frames(ap, default="40:70")
     args = ap.parse_args(argv)
-
-    from mono_map.data.kitti import open_sequence
-    from mono_map.mapping import build
-    from mono_map.mapping.inputs import FrameInputs, probs_steps
-    from mono_map.mapping.jobs import MapJob
-    from mono_map.mapping.pipeline import make_builders
 
     times: dict[str, list[float]] = defaultdict(list)
 
@@ -40,10 +43,13 @@ def main(argv=None) -> None:
             return out
         return g
 
-    seq = open_sequence(args.data_root, args.seq)
-    frames = list(range(*[int(x) for x in args.frames.split(":")]))
-    if len(frames) < 4 or frames[-1] >= len(seq):
-        raise SystemExit(f"bench_fused_parts: --frames {args.frames}: need 4 or more frames of the {len(seq)} there are")
+    try:
+        seq = open_sequence(args.data_root, args.seq)
+        frames = parse_frames(args.frames).resolve(len(seq))
+    except MonoMapError as exc:
+        raise SystemExit(f"bench_fused_parts: {exc}")
+    if len(frames) < 4:
+        raise SystemExit(f"bench_fused_parts: --frames {args.frames}: need 4 or more frames")
     build.distribution_frame = timed("free half", build.distribution_frame)
     build.fuse_prediction = timed("TSDF update", build.fuse_prediction)
     build.due_surface_points = timed("snap", build.due_surface_points)
