@@ -87,6 +87,22 @@ def library_path(name: str, source_dir: Path = SOURCE_DIR, built_dir: Path = BUI
     return cached
 
 
+def loader(name: str, signatures: dict, doc: str):
+    """A module's ``library()``: the library of ``csrc/<name>.c`` with ``signatures`` set, loaded on the first call
+    and kept (None with ``MONO_MAP_NO_C=1``, checked at every call, or when it cannot be loaded). ``doc``: what the
+    library computes, for the function's docstring."""
+    kept: list = []
+
+    def library() -> ctypes.CDLL | None:
+        if disabled():
+            return None
+        if not kept:
+            kept.append(load(name, signatures))
+        return kept[0]
+    library.__doc__ = f"{doc} (ctypes library), or None (no compiler, or ``MONO_MAP_NO_C=1``)."
+    return library
+
+
 def load(name: str, signatures: dict, source_dir: Path = SOURCE_DIR, built_dir: Path = BUILT_DIR) -> ctypes.CDLL | None:
     """The library of ``<source_dir>/<name>.c`` with ``signatures`` ({function: (argtypes, restype)}) set, or None."""
     if disabled():

@@ -193,20 +193,23 @@ void mm_windowed_cost(int64_t d_planes, int64_t h, int64_t w, const float *cost,
 
 /* multiview.resample: x (h x w x c, channels last) read with grid_sample's bilinear weights and border clipping at
    the full image's pixels (v step, u step) of an (full_h x full_w) image: out (out_h x out_w x c, channels last) */
+/* grid_sample's source coordinate (align_corners false, border clipping) of output pixel i, which is pixel i step
+   of a full image n_full wide, on a grid n wide covering it */
+static inline float source_coordinate(int64_t i, int64_t step, int64_t n_full, int64_t n) {
+    const float g = 2.0f * ((float)i * (float)step + 0.5f) / (float)n_full - 1.0f;
+    const float c = (g + 1.0f) * ((float)n / 2.0f) - 0.5f;
+    return c < 0.0f ? 0.0f : (c > (float)n - 1.0f ? (float)n - 1.0f : c);
+}
+
 void mm_resample(int64_t h, int64_t w, int64_t c, const float *x, int64_t out_h, int64_t out_w, int64_t full_h,
                  int64_t full_w, int64_t step, float *out) {
-    const float fh = (float)h, fw = (float)w;
     for (int64_t v = 0; v < out_h; v++) {
-        const float gy = 2.0f * ((float)v * (float)step + 0.5f) / (float)full_h - 1.0f;
-        float iy = (gy + 1.0f) * (fh / 2.0f) - 0.5f;
-        iy = iy < 0.0f ? 0.0f : (iy > fh - 1.0f ? fh - 1.0f : iy);
+        const float iy = source_coordinate(v, step, full_h, h);
         const int64_t y0 = (int64_t)iy;
         const float nth = iy - (float)y0, sth = (float)(y0 + 1) - iy;
         const int in_y = y0 + 1 < h;
         for (int64_t u = 0; u < out_w; u++) {
-            const float gx = 2.0f * ((float)u * (float)step + 0.5f) / (float)full_w - 1.0f;
-            float ix = (gx + 1.0f) * (fw / 2.0f) - 0.5f;
-            ix = ix < 0.0f ? 0.0f : (ix > fw - 1.0f ? fw - 1.0f : ix);
+            const float ix = source_coordinate(u, step, full_w, w);
             const int64_t x0 = (int64_t)ix;
             const float we = ix - (float)x0, e = (float)(x0 + 1) - ix;
             const int in_x = x0 + 1 < w;

@@ -16,19 +16,11 @@ import numpy as np
 from mono_map import ckernel
 
 _P, _I64 = ctypes.c_void_p, ctypes.c_int64
-_LIB: list = []
-
-
-def library():
-    """The compiled sweep (ctypes library), or None (no compiler, or ``MONO_MAP_NO_C=1``)."""
-    if ckernel.disabled():
-        return None
-    if not _LIB:
-        _LIB.append(ckernel.load("sweep", {
-            "mm_sweep_cost": ([_I64, _I64, _P, _I64, _P, _P, _P, _I64, _P, _P, _P], ctypes.c_int),
-            "mm_windowed_cost": ([_I64, _I64, _I64, _P, _P, _I64, _P, _P, _P], None),
-            "mm_resample": ([_I64, _I64, _I64, _P, _I64, _I64, _I64, _I64, _I64, _P], None)}))
-    return _LIB[0]
+library = ckernel.loader("sweep", {
+    "mm_sweep_cost": ([_I64, _I64, _P, _I64, _P, _P, _P, _I64, _P, _P, _P], ctypes.c_int),
+    "mm_windowed_cost": ([_I64, _I64, _I64, _P, _P, _I64, _P, _P, _P], None),
+    "mm_resample": ([_I64, _I64, _I64, _P, _I64, _I64, _I64, _I64, _I64, _P], None),
+}, "The compiled plane sweep")
 
 
 def sweep_cost(lib, target: np.ndarray, sources: list[np.ndarray], K: np.ndarray, T_src_tgt: list[np.ndarray],

@@ -15,19 +15,11 @@ import numpy as np
 from mono_map import ckernel
 
 _P, _I64, _D, _F = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_float
-_LIB: list = []
-
-
-def library():
-    """The compiled snap (ctypes library), or None (no compiler, or ``MONO_MAP_NO_C=1``)."""
-    if ckernel.disabled():
-        return None
-    if not _LIB:
-        _LIB.append(ckernel.load("fused", {
-            "mm_snap_samples": ([_I64, _P, _P, _P, _I64, _P, _P, _P, _P, _D, _P, _P, _P, _P], None),
-            "mm_snap_cross": ([_I64, _I64, _P, _P, _P, _P, _P, _P, _F, _F, _I64, _P], None),
-            "mm_tsdf_update": ([_I64, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I64, _I64, _F, _D, _P, _P], _I64)}))
-    return _LIB[0]
+library = ckernel.loader("fused", {
+    "mm_snap_samples": ([_I64, _P, _P, _P, _I64, _P, _P, _P, _P, _D, _P, _P, _P, _P], None),
+    "mm_snap_cross": ([_I64, _I64, _P, _P, _P, _P, _P, _P, _F, _F, _I64, _P], None),
+    "mm_tsdf_update": ([_I64, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I64, _I64, _F, _D, _P, _P], _I64),
+}, "The compiled fused surface's TSDF update and snap")
 
 
 def ray_samples(lib, u: np.ndarray, v: np.ndarray, z0: np.ndarray, offs: np.ndarray, K: np.ndarray,

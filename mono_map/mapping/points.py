@@ -18,18 +18,10 @@ from mono_map import ckernel, geometry
 # than their temporaries (docs/history/results-log.md).
 _P, _I64 = ctypes.c_void_p, ctypes.c_int64
 FOV_MIN_DEPTH = 1e-3        # metres in front of image_2 for a LiDAR point to count as in view
-_LIB: list = []
-
-
-def library():
-    """The compiled back-projection and LiDAR transform (ctypes library), or None (no compiler, or ``MONO_MAP_NO_C=1``)."""
-    if ckernel.disabled():
-        return None
-    if not _LIB:
-        _LIB.append(ckernel.load("points", {
-            "mm_pixels_to_world": ([_P, _P, _I64, _I64, _P, _P, _P], _I64),
-            "mm_lidar_to_world": ([_P, _I64, _I64, ctypes.c_int, _P, _P, _I64, _I64, ctypes.c_double, _P, _P], _I64)}))
-    return _LIB[0]
+library = ckernel.loader("points", {
+    "mm_pixels_to_world": ([_P, _P, _I64, _I64, _P, _P, _P], _I64),
+    "mm_lidar_to_world": ([_P, _I64, _I64, ctypes.c_int, _P, _P, _I64, _I64, ctypes.c_double, _P, _P], _I64),
+}, "The compiled back-projection and LiDAR transform")
 
 
 def pixels_to_world(depth: np.ndarray, mask: np.ndarray, K: np.ndarray, T_world_cam2: np.ndarray) -> np.ndarray:

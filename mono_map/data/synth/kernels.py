@@ -76,16 +76,7 @@ _SIGNATURES = {
     "syn_depth": ([_I64, _P, _P, _D, _P], None),
     "syn_sensor": ([_I64, _P, _P, _P, _P], None),
 }
-_LIB: list = []
-
-
-def library():
-    """The compiled kernels (ctypes library), or None (no compiler, or ``MONO_MAP_NO_C=1``)."""
-    if ckernel.disabled():
-        return None
-    if not _LIB:
-        _LIB.append(ckernel.load("synth", _SIGNATURES))
-    return _LIB[0]
+library = ckernel.loader("synth", _SIGNATURES, "The compiled kernels of the renderer")
 
 
 def _ptr(a: np.ndarray) -> int:
