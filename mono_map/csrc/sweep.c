@@ -138,9 +138,9 @@ int mm_sweep_cost(int64_t h, int64_t w, const float *target, int64_t n_src, cons
 /* multiview.windowed_cost: planes no source sees (cost INFINITY) get the pixel's mean of the seen ones, then cost
    (D x h x w) and ident (h x w) are averaged over window x window pixels (replicate padding; torch avg_pool2d's
    row-major sum, / window^2) into c_out and ident_out; informative (h x w): at least half the planes seen and the
-   windowed identity above the best windowed plane. */
-void mm_windowed_cost(int64_t d_planes, int64_t h, int64_t w, const float *cost, const float *ident, int64_t window,
-                      float *c_out, float *ident_out, uint8_t *informative) {
+   windowed identity above the best windowed plane. Returns 0, or -1 if out of memory. */
+int mm_windowed_cost(int64_t d_planes, int64_t h, int64_t w, const float *cost, const float *ident, int64_t window,
+                     float *c_out, float *ident_out, uint8_t *informative) {
     const int64_t n = h * w, r = window / 2;
     float *filled = (float *)malloc(sizeof(float) * (size_t)n * (size_t)d_planes);
     float *nseen = (float *)malloc(sizeof(float) * (size_t)n);
@@ -149,8 +149,7 @@ void mm_windowed_cost(int64_t d_planes, int64_t h, int64_t w, const float *cost,
         free(filled);
         free(nseen);
         free(mean);
-        for (int64_t i = 0; i < n; i++) informative[i] = 0;
-        return;
+        return -1;
     }
     for (int64_t i = 0; i < n; i++) nseen[i] = 0.0f, mean[i] = 0.0f;
     for (int64_t k = 0; k < d_planes; k++) {
@@ -189,6 +188,7 @@ void mm_windowed_cost(int64_t d_planes, int64_t h, int64_t w, const float *cost,
     free(filled);
     free(nseen);
     free(mean);
+    return 0;
 }
 
 /* multiview.resample: x (h x w x c, channels last) read with grid_sample's bilinear weights and border clipping at

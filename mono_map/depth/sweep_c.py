@@ -18,7 +18,7 @@ from mono_map import ckernel
 _P, _I64 = ctypes.c_void_p, ctypes.c_int64
 library = ckernel.loader("sweep", {
     "mm_sweep_cost": ([_I64, _I64, _P, _I64, _P, _P, _P, _I64, _P, _P, _P], ctypes.c_int),
-    "mm_windowed_cost": ([_I64, _I64, _I64, _P, _P, _I64, _P, _P, _P], None),
+    "mm_windowed_cost": ([_I64, _I64, _I64, _P, _P, _I64, _P, _P, _P], ctypes.c_int),
     "mm_resample": ([_I64, _I64, _I64, _P, _I64, _I64, _I64, _I64, _I64, _P], None),
 }, "The compiled plane sweep")
 
@@ -54,8 +54,9 @@ def windowed_cost(lib, cost: np.ndarray, ident: np.ndarray, window: int) -> tupl
     c_out = np.empty_like(cost)
     i_out = np.empty_like(ident)
     info = np.empty((h, w), np.uint8)
-    lib.mm_windowed_cost(D, h, w, cost.ctypes.data, ident.ctypes.data, int(window), c_out.ctypes.data,
-                         i_out.ctypes.data, info.ctypes.data)
+    if lib.mm_windowed_cost(D, h, w, cost.ctypes.data, ident.ctypes.data, int(window), c_out.ctypes.data,
+                            i_out.ctypes.data, info.ctypes.data) != 0:
+        raise MemoryError("plane sweep: out of memory")
     return c_out, i_out, info.astype(bool)
 
 
