@@ -70,6 +70,9 @@ def main(argv=None) -> int:
         p.add_argument("--" + name.replace("_", "-"), default=str(getattr(d, name)), help="comma list")
     p.add_argument("--ray-step", type=int, default=None,
                    help="the distribution half's and the fused surface's ray grid (default: DistributionConfig's)")
+    p.add_argument("--eps", default=None,
+                   help="comma list: the free half's eps (rays stop where P(surface beyond) < eps; default: "
+                        "DistributionConfig's)")
     p.add_argument("--no-baselines", action="store_true", help="no keep 0.8 / distribution / depth-gt rows")
     p.add_argument("--keep-multiview", action="store_true",
                    help="also a keep 0.8 map of the multi-view posterior (depth/multiview.py, its defaults)")
@@ -77,7 +80,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     values = [[type(getattr(d, n))(float(v)) for v in getattr(args, n).split(",")] for n in GRID]
     grid = [FusedConfig(**dict(zip(GRID, combo))) for combo in itertools.product(*values)]
-    if args.seq == "00" and (not args.allow_00 or len(grid) > 1):
+    if args.seq == "00" and (not args.allow_00 or len(grid) > 1 or (args.eps or "").count(",")):
         raise SystemExit("tune on a training town, never on 00 (--allow-00 measures one setting)")
     if args.oracle_sigma is not None and (args.model != "oracle" or not 0 < args.oracle_sigma < 1):
         raise SystemExit("--oracle-sigma: needs --model oracle and a noise in (0, 1)")
@@ -97,17 +100,23 @@ def main(argv=None) -> int:
     else:
         predictor = load_predictor(None if args.model == "shipped" else args.model)
     names, maps = [], []
-    dist = {} if args.ray_step is None else {"distribution": DistributionConfig(ray_step=args.ray_step)}
+    dd = DistributionConfig()
+    try:
+        epss = [dd.eps] if args.eps is None else [float(v) for v in args.eps.split(",")]
+    except ValueError:
+        raise SystemExit(f"--eps: a comma list of numbers, got {args.eps!r}")
+    dists = [DistributionConfig(ray_step=dd.ray_step if args.ray_step is None else args.ray_step, eps=e) for e in epss]
     if not args.no_baselines:
         names += ["mono keep 0.8", "mono, distribution"]
         maps += [dict(keep=0.8), dict(integrate="distribution")]
     if args.keep_multiview:
         names.append("mono keep 0.8, multiview posterior")
         maps.append(dict(keep=0.8, multiview=MultiviewConfig()))
-    for g in grid:
+    for g, dc in itertools.product(grid, dists):
         names.append("fused " + " ".join(f"{n} {getattr(g, n):g}" for n in GRID if getattr(g, n) != getattr(d, n))
-                     + ("" if args.ray_step is None else f" ray_step {args.ray_step}"))
-        maps.append(dict(integrate="fused", fused=g, **dist))
+                     + ("" if args.ray_step is None else f" ray_step {args.ray_step}")
+                     + ("" if dc.eps == dd.eps else f" eps {dc.eps:g}"))
+        maps.append(dict(integrate="fused", fused=g, distribution=dc))
     builders = make_builders(seq, [dict(job=MapJob.spec("mono", frames, **{k: v for k, v in kw.items() if k != "multiview"}),
                                         multiview=kw.get("multiview"), predictor=predictor, stats_every=10**9)
                                    for kw in maps])
