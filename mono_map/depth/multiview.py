@@ -171,7 +171,7 @@ def windowed_cost(cost, ident, window: int = 1):
 
     lib = sweep_c.library()
     if lib is not None:                         # the same in one compiled pass
-        c, _, info = sweep_c.windowed_cost(lib, cost.numpy(), ident.numpy(), window)
+        c, info = sweep_c.windowed_cost(lib, cost.numpy(), ident.numpy(), window)
         return torch.from_numpy(c), torch.from_numpy(info)
     seen = torch.isfinite(cost)
     n_seen = seen.float().sum(0)

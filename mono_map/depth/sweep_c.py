@@ -45,9 +45,9 @@ def sweep_cost(lib, target: np.ndarray, sources: list[np.ndarray], K: np.ndarray
     return cost, ident
 
 
-def windowed_cost(lib, cost: np.ndarray, ident: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def windowed_cost(lib, cost: np.ndarray, ident: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
     """:func:`mono_map.depth.multiview.windowed_cost` of ``cost`` (D, h, w) float32 (inf: unseen) and ``ident``
-    (h, w): (windowed cost (D, h, w), windowed identity (h, w), informative (h, w) bool)."""
+    (h, w): (windowed cost (D, h, w), informative (h, w) bool)."""
     D, h, w = cost.shape
     cost = np.ascontiguousarray(cost, dtype=np.float32)
     ident = np.ascontiguousarray(ident, dtype=np.float32)
@@ -57,7 +57,7 @@ def windowed_cost(lib, cost: np.ndarray, ident: np.ndarray, window: int) -> tupl
     if lib.mm_windowed_cost(D, h, w, cost.ctypes.data, ident.ctypes.data, int(window), c_out.ctypes.data,
                             i_out.ctypes.data, info.ctypes.data) != 0:
         raise MemoryError("plane sweep: out of memory")
-    return c_out, i_out, info.astype(bool)
+    return c_out, info.astype(bool)
 
 
 def resample(lib, x: np.ndarray, size: tuple[int, int], full: tuple[int, int], step: int) -> np.ndarray:

@@ -236,9 +236,7 @@ class SurfaceFusion:
         lib = fused_c.library() if fine is None else None
         if lib is not None:                                 # the same in one compiled pass
             return fused_c.tsdf_update(lib, vcoords.numpy(), idx, R, t, K, depth, trunc, weight, normals,
-                                       self.cfg.trunc_behind, self.cfg.trunc_max,
-                                       self.vbg.attribute("tsdf").reshape((-1,)).numpy(),
-                                       self.vbg.attribute("weight").reshape((-1,)).numpy())
+                                       self.cfg.trunc_behind, self.cfg.trunc_max, *self.fields())
         pc = vcoords.numpy() @ R.T + t
         z = pc[:, 2]
         front = z > 1e-3
@@ -280,8 +278,7 @@ class SurfaceFusion:
         sel, sdf, tau = sel[keep], sdf[keep], tau[keep]
         wgt = weight[v[keep], u[keep]]
         t_new = (np.clip(sdf, -tau, tau) / self.cfg.trunc_max).astype(np.float32)
-        tsdf = self.vbg.attribute("tsdf").reshape((-1,)).numpy()     # views of open3d's buffers
-        wsum = self.vbg.attribute("weight").reshape((-1,)).numpy()
+        tsdf, wsum = self.fields()
         i = idx[sel]
         w_old = wsum[i]
         w_new = w_old + wgt
@@ -303,9 +300,16 @@ class SurfaceFusion:
         b = self.slots(blk)
         ok = b >= 0
         flat = b[ok] * self.BLOCK ** 3 + loc[ok, 0] + self.BLOCK * loc[ok, 1] + self.BLOCK ** 2 * loc[ok, 2]
-        tsdf_out[ok] = self.vbg.attribute("tsdf").reshape((-1,)).numpy()[flat]
-        w_out[ok] = self.vbg.attribute("weight").reshape((-1,)).numpy()[flat]
+        tsdf, wsum = self.fields()
+        tsdf_out[ok] = tsdf[flat]
+        w_out[ok] = wsum[flat]
         return tsdf_out, w_out
+
+    def fields(self) -> tuple[np.ndarray, np.ndarray]:
+        """(tsdf, summed weight): flat float32 views of open3d's attribute buffers (512 voxels a block, in the
+        hash map's slot order; tsdf in units of ``trunc_max``), written in place by :meth:`integrate`."""
+        return (self.vbg.attribute("tsdf").reshape((-1,)).numpy(),
+                self.vbg.attribute("weight").reshape((-1,)).numpy())
 
     def slots(self, blocks: np.ndarray) -> np.ndarray:
         """The hash map's slot (int64 (N,); −1: no such block) of each block coordinate in ``blocks`` (N, 3)."""
@@ -331,15 +335,12 @@ class SurfaceFusion:
         n = int(math.ceil(window / self.res))
         offs = np.arange(-n, n + 1, dtype=np.float64) * self.res
         T = np.asarray(T_world_cam, dtype=np.float64)
+        nw = None if normals is None else normals[v, u].astype(np.float64) @ T[:3, :3].T    # (P, 3) world
         lib = fused_c.library()
         if lib is not None:                                   # the same in two compiled passes
-            nw = None if normals is None else normals[v, u].astype(np.float64) @ T[:3, :3].T
             blk, loc, zs, step = fused_c.ray_samples(lib, u, v, depth[v, u].astype(np.float64), offs, K, T,
                                                      self.res, nw)
-            out[v, u] = fused_c.crossings(lib, self.slots(blk), loc, zs, step,
-                                          self.vbg.attribute("tsdf").reshape((-1,)).numpy(),
-                                          self.vbg.attribute("weight").reshape((-1,)).numpy(),
-                                          self.cfg.trunc_max, thr)
+            out[v, u] = fused_c.crossings(lib, self.slots(blk), loc, zs, step, *self.fields(), self.cfg.trunc_max, thr)
             return out
         z = depth[v, u].astype(np.float64)[:, None] + offs[None, :]            # (P, S) sample depths
         x = (u[:, None] - K[0, 2]) / K[0, 0] * z
@@ -348,11 +349,10 @@ class SurfaceFusion:
         t, w = self.sample(pts)
         # the cell's value holds at its centre: moved to the sample along this camera's axis (first order)
         centres = (np.floor(pts / self.res) + 0.5) * self.res
-        if normals is None:
+        if nw is None:
             zc = (centres - T[:3, 3]) @ T[:3, 2]                   # the centres' depths in this camera
             step = z - zc.reshape(z.shape)
         else:                                                      # the distance grows along the normal
-            nw = normals[v, u].astype(np.float64) @ T[:3, :3].T    # (P, 3) world
             step = -np.einsum("psk,pk->ps", (pts - centres).reshape(z.shape + (3,)), nw)
         t = t.reshape(z.shape) * np.float32(self.cfg.trunc_max) - step
         w = w.reshape(z.shape)

@@ -49,9 +49,9 @@ def run_builders(seq, builders: Sequence[MapBuilder], frames: Sequence[int], sho
     next frame is predicted while the maps integrate this one; a builder's per-frame ``frame_s`` is its own
     work (selection, back-projection, integration; in a group of keep maps, :func:`share_ray_casts`, the
     first map's includes the group's one selection and ray cast); a map's work that needs no map (the
-    multi-view posterior of a fused map, ``MapBuilder.prepare``) runs ahead with the prediction. The maps are the same as frame by frame.
-    Observers are closed at the end, also on error. Take each map with ``builder.result(frames)`` afterwards
-    (one octree in memory at a time)."""
+    multi-view posterior of a fused map, ``MapBuilder.prepare``) runs ahead with the prediction. The maps are
+    the same as frame by frame. Observers are closed at the end, also on error. Take each map with
+    ``builder.result(frames)`` afterwards (one octree in memory at a time)."""
     steps = probs_steps(builders)
     share_ray_casts(builders)
     frames = list(frames)
