@@ -91,6 +91,43 @@ def test_every_family_keeps_shape_dtype_and_range_and_is_seeded():
         assert out.dtype == np.float32 and 0.0 <= out.min() and out.max() <= 1.0
 
 
+def test_random_convolution_changes_texture_and_colour_not_where_the_edges_are():
+    """RandConv-mix: shape, dtype, range, seeded; the colours change, a step edge stays in its column; in a
+    batch it is drawn only when asked (off: the crops of the runs before it)."""
+    img = _scene(48, 64)
+    img[:, 40:] = np.clip(img[:, 40:] * np.array([0.2, 0.5, 1.6], np.float32), 0, 1)   # a strong edge at column 40
+    changed = 0
+    for seed in range(12):
+        a = A.random_convolution(img, np.random.default_rng(seed))
+        np.testing.assert_array_equal(a, A.random_convolution(img, np.random.default_rng(seed)))
+        assert a.shape == img.shape and a.dtype == np.float32 and 0.0 <= a.min() and a.max() <= 1.0
+        changed += float(np.abs(a - img).mean()) > 0.01
+        col = np.abs(np.diff(a, axis=1)).sum(axis=(0, 2))      # horizontal gradient per column pair
+        assert abs(int(col.argmax()) - 39) <= 3, seed          # within the largest kernel's radius
+    assert changed >= 9
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 255, (3, 40, 72, 3), dtype=np.uint8)
+    depths = rng.uniform(2, 60, (3, 40, 72)).astype(np.float16)
+    off = sample_batch(images, depths, 4, (32, 64), np.random.default_rng(5), Augmentation())
+    zero = sample_batch(images, depths, 4, (32, 64), np.random.default_rng(5), Augmentation(random_convolution=0.0))
+    on = sample_batch(images, depths, 4, (32, 64), np.random.default_rng(5), Augmentation(random_convolution=1.0))
+    np.testing.assert_array_equal(off[0], zero[0])
+    assert not np.array_equal(off[0], on[0]) and 0.0 <= on[0].min() and on[0].max() <= 1.0
+    np.testing.assert_array_equal(off[1][:1], on[1][:1])        # the first crop's depths: same frame, crop, flip
+    with pytest.raises(MonoMapError, match="random_convolution"):
+        load_run_config_text('[model]\nhead = "binary"\n[train]\nrandom_convolution = 1.5\n')
+
+
+def load_run_config_text(text):
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "cfg.toml"
+        p.write_text(text)
+        return load_run_config(p)
+
+
 def _old_sample_batch(images, depths, batch, crop, rng, augment):
     """The training's crop/colour/flip before depth/augment.py (verbatim), the reference for 'godard'."""
     n, H, W = depths.shape

@@ -10,6 +10,11 @@ shape, dtype and range. Two policies (``train.photometric``):
   over-exposed roads or skies, clipped), white balance, sensor noise (shot + read), the tone curve
   (gamma, contrast, saturation), JPEG compression.
 
+Random convolution (``train.random_convolution``, after either policy; Xu et al., "Robust and Generalizable
+Visual Representation Learning via Random Convolutions", ICLR 2021): on a fraction of the crops the image is
+filtered by a freshly drawn 3→3 channel convolution (kernel 1, 3, 5 or 7 px, normal weights) and mixed with
+itself — local texture and colour change at random, shapes and edges stay where they are.
+
 Geometric augmentation (``train.scale``): the frame is enlarged by ``s >= 1`` before the crop. A
 resize by ``s`` multiplies the focal length by ``s``; the network only ever sees the training focal
 length, so the metric z-depth targets are divided by ``s`` instead (``z' = z / s``): the enlarged image
@@ -170,6 +175,25 @@ def photometric(img: np.ndarray, rng: np.random.Generator, policy: str, cfg: Cam
     if policy == "godard":
         return godard(img, rng) if rng.random() < 0.5 else img
     return camera(img, rng, cfg)
+
+
+def random_convolution(img: np.ndarray, rng: np.random.Generator, sizes: tuple = (1, 3, 5, 7)) -> np.ndarray:
+    """RandConv-mix on an (h,w,3) float image in [0,1]: a 3→3 convolution with kernel size k drawn from
+    ``sizes`` and weights ~ N(0, 1/(3·k²)) (reflected borders), each output channel rescaled to the input's
+    mean and standard deviation, then α·img + (1−α)·filtered with α ~ U(0,1), clipped to [0,1]."""
+    import cv2
+
+    img = np.asarray(img, np.float32)
+    k = int(rng.choice(np.asarray(sizes)))
+    w = rng.normal(0.0, 1.0 / np.sqrt(3.0 * k * k), size=(3, 3, k, k)).astype(np.float32)
+    out = np.empty_like(img)
+    mean, std = img.reshape(-1, 3).mean(0), img.reshape(-1, 3).std(0)
+    for o in range(3):
+        f = sum(cv2.filter2D(np.ascontiguousarray(img[..., c]), -1, w[o, c], borderType=cv2.BORDER_REFLECT)
+                for c in range(3))
+        out[..., o] = (f - f.mean()) / max(float(f.std()), 1e-6) * std[o] + mean[o]
+    a = np.float32(rng.uniform(0.0, 1.0))
+    return np.clip(a * img + (1 - a) * out, 0.0, 1.0).astype(np.float32)
 
 
 # ------------------------------------------------------------------ geometry

@@ -59,6 +59,8 @@ class TrainConfig:
                                                      # half the crops) or "camera" (nine camera families)
     camera_families: tuple = ()                      # "camera": only these families (empty = all nine)
     camera_p_scale: float = 1.0                      # "camera": every family's probability times this (0-1]
+    random_convolution: float = field(default=0.0, metadata=bounded(lo=0, hi=1))  # fraction of crops filtered by a
+                                                     # random convolution after the colour policy (0 = off)
     scale: tuple = (1.0, 1.0)                        # enlarge each frame by s ~ U(lo, hi) >= 1 before the crop,
 
 

@@ -24,6 +24,7 @@ class Augmentation:
     policy: str = "godard"
     camera: object = None              # augment.CameraAugment for policy "camera"
     scale: tuple = (1.0, 1.0)
+    random_convolution: float = 0.0    # fraction of the crops filtered by a random convolution (augment.py)
 
 
 def augmentation(t: TrainConfig) -> Augmentation:
@@ -31,14 +32,14 @@ def augmentation(t: TrainConfig) -> Augmentation:
 
     cam = CameraAugment().only(tuple(t.camera_families)).scaled(float(t.camera_p_scale))
     return Augmentation(colour=t.augment, policy=t.photometric, camera=cam,
-                        scale=tuple(float(v) for v in t.scale))
+                        scale=tuple(float(v) for v in t.scale), random_convolution=float(t.random_convolution))
 
 
 def augment_crop(img: np.ndarray, dep: np.ndarray, ch: int, cw: int, rng: np.random.Generator, aug: Augmentation):
     """One training crop of a frame (img (H,W,3) uint8, dep (H,W) metres): scale/crop, colour, 50 % flip ->
     (float32 image in [0,1], float32 depths). With the default Augmentation the random draws are exactly
     those of the training before depth/augment.py (same crops, same colours, same flips)."""
-    from mono_map.depth.augment import photometric, scale_crop
+    from mono_map.depth.augment import photometric, random_convolution, scale_crop
 
     H, W = dep.shape
     if aug.scale[1] > 1.0:
@@ -53,6 +54,8 @@ def augment_crop(img: np.ndarray, dep: np.ndarray, ch: int, cw: int, rng: np.ran
     dep = np.asarray(dep, dtype=np.float32)
     if aug.colour:
         img = photometric(img, rng, aug.policy, aug.camera)
+    if aug.random_convolution > 0 and rng.random() < aug.random_convolution:   # off: no draw (runs before it reproduce)
+        img = random_convolution(img, rng)
     if rng.random() < 0.5:
         img, dep = img[:, ::-1], dep[:, ::-1]
     return img, dep
