@@ -1,7 +1,7 @@
 """A picture of models on real KITTI object frames: image, LiDAR, and per model its inverse depth and error.
 
     python tools/plot_object_frames.py --model v2/binary-real --model v2/binary-randconv \\
-        --frames k007347,000002,k000003 --out docs/images/object_randconv.jpg [--real-root ../shared/kitti_real]
+        --names k007347,000002,k000003 --out docs/images/object_randconv.jpg [--real-root ../shared/kitti_real]
 
 One row per frame (looked up in object/training and object/extra); inverse depth (1/m) on one colour scale
 (1/80 … 1/3), the error as log2(predicted / LiDAR depth) at the LiDAR points (red too far, blue too near,
@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_model(ap, repeat=True)
-    ap.add_argument("--frames", required=True, help="object frame names, comma-separated (e.g. k007347,000002)")
+    ap.add_argument("--names", required=True, help="object frame names, comma-separated (e.g. k007347,000002)")
     ap.add_argument("--real-root", default=str(REPO.parent / "shared" / "kitti_real"),
                     help="the kitti_real folder (default ../shared/kitti_real)")
     ap.add_argument("--out", required=True, help="picture to write (.png or .jpg)")
@@ -39,7 +39,7 @@ def main(argv=None) -> None:
     folders = [d for d in (root / "training", root / "extra") if d.is_dir()]
     if not folders:
         sys.exit(f"plot_object_frames: --real-root: no object/training or object/extra under {args.real_root}")
-    names = [n for n in args.frames.split(",") if n]
+    names = [n for n in args.names.split(",") if n]
     models = args.model or ["binary"]
     try:
         for m in models:
@@ -49,7 +49,7 @@ def main(argv=None) -> None:
         sys.exit(f"plot_object_frames: {exc}")
     missing = [n for n in names if n not in frames]
     if not names or missing:
-        sys.exit(f"plot_object_frames: --frames: not object frames under {root}: {', '.join(missing) or '(none given)'}")
+        sys.exit(f"plot_object_frames: --names: not object frames under {root}: {', '.join(missing) or '(none given)'}")
     predictors = {m: DepthPredictor.load(m, precision=default_precision()) for m in models}
 
     import cv2
