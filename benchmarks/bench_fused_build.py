@@ -73,7 +73,8 @@ def main(argv=None) -> None:
         sel = parse_frames(args.frames)
     except MonoMapError as exc:
         sys.exit(f"bench_fused_build: {exc}")
-    n = sel.needed() if sel.needed() is not None else "all"
+    needed = sel.needed()
+    n = "all" if needed is None else needed
     for _ in range(args.warmup):
         for root in roots.values():
             run_build(root, args)

@@ -91,7 +91,7 @@ def test_every_family_keeps_shape_dtype_and_range_and_is_seeded():
         assert out.dtype == np.float32 and 0.0 <= out.min() and out.max() <= 1.0
 
 
-def test_random_convolution_changes_texture_and_colour_not_where_the_edges_are():
+def test_random_convolution_changes_texture_and_colour_not_where_the_edges_are(tmp_path):
     """RandConv-mix: shape, dtype, range, seeded; the colours change, a step edge stays in its column; in a
     batch it is drawn only when asked (off: the crops of the runs before it)."""
     img = _scene(48, 64)
@@ -114,18 +114,10 @@ def test_random_convolution_changes_texture_and_colour_not_where_the_edges_are()
     np.testing.assert_array_equal(off[0], zero[0])
     assert not np.array_equal(off[0], on[0]) and 0.0 <= on[0].min() and on[0].max() <= 1.0
     np.testing.assert_array_equal(off[1][:1], on[1][:1])        # the first crop's depths: same frame, crop, flip
-    with pytest.raises(MonoMapError, match="random_convolution"):
-        load_run_config_text('[model]\nhead = "binary"\n[train]\nrandom_convolution = 1.5\n')
-
-
-def load_run_config_text(text):
-    import tempfile
-    from pathlib import Path
-
-    with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / "cfg.toml"
-        p.write_text(text)
-        return load_run_config(p)
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[model]\nhead = "binary"\n[train]\nrandom_convolution = 1.5\n')
+    with pytest.raises(MonoMapError, match=r"bad.toml \[train\]: random_convolution"):
+        load_run_config(bad)
 
 
 def _old_sample_batch(images, depths, batch, crop, rng, augment):

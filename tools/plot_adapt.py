@@ -75,17 +75,14 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from mono_map.errors import MonoMapError
-    from mono_map.io import atomic_path
 
     torch.set_num_threads(1)
     try:
         if args.what == "depth":
-            import cv2
-
             from mono_map.data.kitti import open_sequence
             from mono_map.depth.inference import DepthPredictor
-
             from mono_map.frames import parse_frames
+            from mono_map.viz.plots import write_picture
 
             names = args.model or [None]                  # None: the shipped binary model
             labels = args.label or [m or "binary" for m in names]
@@ -95,11 +92,7 @@ def main(argv: list[str] | None = None) -> int:
             frames = parse_frames(args.frames).resolve(len(seq))
             models = [(lab, DepthPredictor.load(m)) for lab, m in zip(labels, names)]
             pic = depth_rows(seq, frames, models)
-            with atomic_path(args.out) as tmp:
-                ext = ".jpg" if str(args.out).lower().endswith(".jpg") else ".png"
-                ok, buf = cv2.imencode(ext, cv2.cvtColor(pic, cv2.COLOR_RGB2BGR),
-                                       [cv2.IMWRITE_JPEG_QUALITY, 85] if ext == ".jpg" else [cv2.IMWRITE_PNG_COMPRESSION, 9])
-                tmp.write_bytes(buf.tobytes())
+            write_picture(args.out, pic)
         else:
             from mono_map.mapping.octree import load_tree
             from mono_map.viz.plots import render_topdown

@@ -33,7 +33,7 @@ def main(argv=None) -> None:
     from mono_map.depth.inference import DepthPredictor, checkpoint_path, default_precision
     from mono_map.errors import MonoMapError
     from mono_map.eval.depth_evaluation import object_frames
-    from mono_map.io import atomic_path
+    from mono_map.viz.plots import write_picture
 
     root = Path(args.real_root) / "object"
     folders = [d for d in (root / "training", root / "extra") if d.is_dir()]
@@ -52,7 +52,6 @@ def main(argv=None) -> None:
         sys.exit(f"plot_object_frames: --names: not object frames under {root}: {', '.join(missing) or '(none given)'}")
     predictors = {m: DepthPredictor.load(m, precision=default_precision()) for m in models}
 
-    import cv2
     import matplotlib
 
     matplotlib.use("Agg")
@@ -93,11 +92,7 @@ def main(argv=None) -> None:
     plt.close(fig)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    ext = ".jpg" if out.suffix.lower() in (".jpg", ".jpeg") else ".png"
-    ok, buf = cv2.imencode(ext, cv2.cvtColor(pic, cv2.COLOR_RGB2BGR),
-                           [cv2.IMWRITE_JPEG_QUALITY, 82] if ext == ".jpg" else [cv2.IMWRITE_PNG_COMPRESSION, 9])
-    with atomic_path(out) as tmp:
-        tmp.write_bytes(buf.tobytes())
+    write_picture(out, pic)
     print(f"wrote {out}")
 
 

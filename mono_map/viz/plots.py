@@ -42,6 +42,21 @@ def figure(path: str | Path, dpi: int, **savefig) -> Iterator:
         plt.close(plt.gcf())
 
 
+def write_picture(path: str | Path, rgb: np.ndarray) -> None:
+    """Write an H×W×3 uint8 RGB picture to ``path`` atomically: JPEG (quality 85) for .jpg/.jpeg, else PNG."""
+    import cv2
+
+    from mono_map.io import atomic_path
+
+    jpeg = Path(path).suffix.lower() in (".jpg", ".jpeg")
+    ok, buf = cv2.imencode(".jpg" if jpeg else ".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR),
+                           [cv2.IMWRITE_JPEG_QUALITY, 85] if jpeg else [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    if not ok:  # pragma: no cover - cv2 failure
+        raise OSError(f"{path}: could not encode the picture")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buf.tobytes())
+
+
 # --------------------------------------------------------------------------- top-down maps
 
 
