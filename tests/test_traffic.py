@@ -74,7 +74,7 @@ def test_recipes_without_traffic_keep_their_hash_town_and_pixels():
     specs = {s.name: s for s in [validation_town()] + training_towns()[:6]}
     for name, h in TOWN_HASHES_BEFORE.items():
         assert randomized_recipe(specs[name]).content_hash() == h, name
-        new_keys = ("traffic", "kerb_trucks", "vehicle_detail", "jam")
+        new_keys = ("traffic", "kerb_trucks", "vehicle_detail", "jam", "greenery")
         assert specs[name].to_dict() == {k: v for k, v in vars(specs[name]).items() if k not in new_keys}
     recipe = load_recipe("tiny")
     assert recipe.traffic == TrafficParams() and not recipe.traffic.enabled()

@@ -50,6 +50,9 @@ def register(subparsers) -> None:
     p.add_argument("--detailed", action="store_true",
                    help="also the twins of the training, traffic and kerb-truck towns asked for with painted details on "
                         "their vehicles (lights, plates, stripes, lettering, grime): p01_0a, d01_0a, v01_0a, ...")
+    p.add_argument("--greenery", action="store_true",
+                   help="with --detailed: also the twins of those painted towns with hedges along the frontages and "
+                        "canopy trees over the road: q01_0a, g01_0a, e01_0a, ...")
     p.set_defaults(func=run_render_trainset)
 
 
@@ -105,7 +108,8 @@ def run_synth(args: argparse.Namespace) -> int:
 def run_render_trainset(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from mono_map.data.synth.randomize import detailed_towns, jam_towns, traffic_towns, training_towns, validation_town
+    from mono_map.data.synth.randomize import (detailed_towns, greenery_towns, jam_towns, traffic_towns, training_towns,
+                                               validation_town)
     from mono_map.data.synth.trainset import default_root, render_trainset
     from mono_map.errors import MonoMapError
 
@@ -120,6 +124,8 @@ def run_render_trainset(args: argparse.Namespace) -> int:
         raise MonoMapError(f"--kerb-trucks: must be 0 (none) to {len(specs)}, got {args.kerb_trucks}")
     if not 0 <= args.jams <= len(specs):
         raise MonoMapError(f"--jams: must be 0 (none) to {len(specs)}, got {args.jams}")
+    if args.greenery and not args.detailed:
+        raise MonoMapError("--greenery: makes twins of the painted towns; pass --detailed too")
     root = Path(args.root).expanduser() if args.root else default_root()
     if root.exists() and not root.is_dir():
         raise MonoMapError(f"--root: {root}: not a directory")
@@ -127,7 +133,9 @@ def run_render_trainset(args: argparse.Namespace) -> int:
         raise MonoMapError(f"--root: {root}: not writable")
     towns = (specs[:args.towns] if args.towns else specs) + traffic_towns(args.traffic) \
         + traffic_towns(args.kerb_trucks, kerb_trucks=True)
-    specs = [validation_town()] + towns + (detailed_towns(towns) if args.detailed else []) + jam_towns(args.jams)
+    detailed = detailed_towns(towns) if args.detailed else []
+    specs = [validation_town()] + towns + detailed + (greenery_towns(detailed) if args.greenery else []) \
+        + jam_towns(args.jams)
     print(f"rendering {len(specs)} towns ({sum(s.frames for s in specs)} frames) into {root}", file=sys.stderr)
     out = render_trainset(root, specs, workers=args.workers, log=lambda m: print(m, file=sys.stderr, flush=True))
     print(f"done: {out['frames_rendered']} frames in {out['seconds'] / 60:.1f} min", file=sys.stderr)

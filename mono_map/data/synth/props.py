@@ -183,3 +183,82 @@ def add_fences(mb, objs, occ, path, index, rng, recipe, side, edge, counts):
                 V, F = box(c, box_axes(f, r), [length / 2, (height + 0.2) / 2, 0.03])
                 mb.add(V, F, M.FENCE, oid)
         s += block
+
+
+HEDGE_COLORS = [(0.13, 0.24, 0.08), (0.17, 0.27, 0.10), (0.10, 0.19, 0.08), (0.22, 0.28, 0.12)]
+CANOPY_COLORS = [(0.20, 0.30, 0.10), (0.16, 0.27, 0.09), (0.25, 0.32, 0.12)]
+
+
+def add_hedges(mb, objs, occ, path, index, rng, recipe, side, edge, counts):
+    """Trimmed hedges (foliage boxes 0.8-2.2 m high, 0.6-1.2 m thick, their tops uneven) along the back of the
+    sidewalk on ``side`` where no building or fence stands; a 25 m stretch gets one with probability
+    ``recipe.props.hedge_fraction``. ``rng``: the hedges' own stream (the town's other draws stay as they were)."""
+    st = recipe.street
+    step = 2.5
+    s = 0.0
+    while s < path.s[-1]:
+        block = 25.0
+        on = rng.random() < recipe.props.hedge_fraction
+        height = float(rng.uniform(0.8, 2.2))
+        thick = float(rng.uniform(0.6, 1.2))
+        color = HEDGE_COLORS[int(rng.integers(len(HEDGE_COLORS)))]
+        lat = edge + st.sidewalk_width + 0.1 + thick / 2
+        oid = None
+        for s0 in np.arange(s, min(s + block, path.s[-1] - step), step) if on else ():
+            k0, p0, f0, r0 = frame_at(path, s0)
+            k1, p1, f1, r1 = frame_at(path, s0 + step)
+            a, b = p0 + side * r0 * lat, p1 + side * r1 * lat
+            f = b - a
+            length = np.linalg.norm(f)
+            if length < 1.0 or length > 4.0:
+                continue
+            f /= length
+            r = np.cross([0.0, 1.0, 0.0], f)
+            mid = (a + b) / 2
+            pts = footprint_samples(mid, f, r, length / 2 * 0.8, thick / 2, step=0.4)
+            if not clear_of_road(index, pts, edge + st.sidewalk_width - 0.3) or not occ.free(pts):
+                continue
+            occ.mark(pts)
+            if oid is None:
+                oid = objs.add(color)
+                counts["hedges"] = counts.get("hedges", 0) + 1
+            h = height * float(rng.uniform(0.93, 1.07))
+            V, F = box(mid + np.array([0.0, -(h - 0.2) / 2, 0.0]), box_axes(f, r), [length / 2 + 0.05, (h + 0.2) / 2,
+                                                                                    thick / 2])
+            mb.add(V, F, M.FOLIAGE, oid)
+        s += block
+
+
+def add_canopy_trees(mb, objs, occ, path, index, rng, recipe, side, edge, counts):
+    """Large trees on the sidewalk on ``side`` whose crowns (two or three lumpy blobs, radius 3-5.5 m) reach over
+    the road, the crown's bottom at least 4.5 m up (above the lane's trucks); a slot every ``trees.spacing`` metres
+    gets one with probability ``recipe.trees.canopy``. ``rng``: their own stream."""
+    tp = recipe.trees
+    up = np.array([0.0, -1.0, 0.0])
+    s = float(rng.uniform(0, tp.spacing))
+    while s < path.s[-1]:
+        crown = float(rng.uniform(3.0, 5.5))
+        trunk_h = 4.5 + 0.3 * crown + float(rng.uniform(0.0, 1.5))
+        trunk_r = float(rng.uniform(0.18, 0.35))
+        lat = edge + float(rng.uniform(0.6, 1.2))
+        lean = float(rng.uniform(0.2, 0.5)) * crown       # the crown's centre over the road side of the trunk
+        tint = float(rng.uniform(0.75, 1.2))
+        blob_rng = np.random.default_rng(int(rng.integers(1 << 31)))
+        if rng.random() < tp.canopy:
+            k, p, f, r = frame_at(path, s)
+            base = p + side * r * lat
+            if clear_of_road(index, base[None, [0, 2]], edge - 0.2) and occ.free(base[None, [0, 2]]):
+                occ.mark(base[None, [0, 2]])
+                col = CANOPY_COLORS[int(blob_rng.integers(len(CANOPY_COLORS)))]
+                oid = objs.add(tuple(c * tint for c in col))
+                V, F = cylinder(base + up * -0.2, up, trunk_r, trunk_h + 0.2 + 0.4 * crown, segments=8)
+                mb.add(V, F, M.TRUNK, oid)
+                c = base + up * (trunk_h + 0.85 * crown * 0.6) - side * r * lean
+                for j in range(int(blob_rng.integers(2, 4))):
+                    o = (blob_rng.uniform(-0.45, 0.45) * crown) * f + (blob_rng.uniform(-0.3, 0.3) * crown) * r
+                    rad = crown * float(blob_rng.uniform(0.7, 1.0))
+                    cj = c + o + up * float(blob_rng.uniform(-0.1, 0.25)) * crown
+                    V, F = blob(cj, [rad, rad * 0.6, rad], blob_rng)
+                    mb.add(V, F, M.FOLIAGE, oid)
+                counts["canopy_trees"] = counts.get("canopy_trees", 0) + 1
+        s += tp.spacing * float(rng.uniform(0.8, 1.4))

@@ -34,12 +34,13 @@ class TownSpec:
     kerb_trucks: bool = False   # with traffic: large vehicles parked at the kerbs too (the "k" family)
     vehicle_detail: bool = False  # vehicles with painted details: the twins of the t, h, k towns (p, d, v families)
     jam: bool = False           # with traffic: a traffic jam, lanes and kerbs full, large vehicles close (the "j" family)
+    greenery: bool = False      # hedges along the frontages, canopy trees over the road: twins of p, d, v (q, g, e families)
 
     def to_dict(self) -> dict:
-        """The spec as stored in the cache; ``traffic``/``kerb_trucks``/``vehicle_detail``/``jam`` only when set, so
-        older towns keep their identity."""
+        """The spec as stored in the cache; ``traffic``/``kerb_trucks``/``vehicle_detail``/``jam``/``greenery`` only
+        when set, so older towns keep their identity."""
         d = asdict(self)
-        for key in ("traffic", "kerb_trucks", "vehicle_detail", "jam"):
+        for key in ("traffic", "kerb_trucks", "vehicle_detail", "jam", "greenery"):
             if not d[key]:
                 d.pop(key)
         return d
@@ -86,6 +87,10 @@ def randomized_recipe(spec: TownSpec) -> Recipe:
                                 ahead_spacing=float(t.uniform(35.0, 90.0)),
                                 large_fraction=float(t.uniform(0.3, 0.7)), van_fraction=float(t.uniform(0.1, 0.35)),
                                 kerb_large_density=kerb)
+    green = (0.0, 0.0)
+    if spec.greenery:                        # its own stream too: a twin keeps every other draw of its town
+        g = np.random.default_rng([spec.seed, 134])
+        green = (float(g.uniform(0.3, 0.8)), float(g.uniform(0.3, 0.8)))
     return Recipe(
         name=spec.name, seed=spec.seed, frames=spec.frames, trajectory=spec.trajectory,
         pose_stride=spec.pose_stride, first_pose=spec.first_pose,
@@ -98,8 +103,8 @@ def randomized_recipe(spec: TownSpec) -> Recipe:
                                  storefront_fraction=u(0.0, 0.7), brick_fraction=u(0.0, 0.8)),
         cars=CarParams(density=u(0.2, 0.95), black_fraction=u(0.05, 0.3), van_fraction=u(0.0, 0.25),
                        detail=DETAILED_SHARE if spec.vehicle_detail else 0.0),
-        trees=TreeParams(spacing=u(8.0, 30.0), density=u(0.1, 0.9)),
-        props=PropParams(pole_spacing=u(15.0, 45.0), fence_fraction=u(0.0, 0.7)),
+        trees=TreeParams(spacing=u(8.0, 30.0), density=u(0.1, 0.9), canopy=green[0]),
+        props=PropParams(pole_spacing=u(15.0, 45.0), fence_fraction=u(0.0, 0.7), hedge_fraction=green[1]),
         light=LightParams(sun_azimuth_deg=u(-180.0, 180.0), sun_elevation_deg=u(12.0, 70.0),
                           haze_distance=float(np.exp(r.uniform(np.log(70.0), np.log(600.0)))), exposure=1.0),
         traffic=traffic,
@@ -245,6 +250,23 @@ def detailed_towns(specs: list[TownSpec]) -> list[TownSpec]:
         if s.name[0] not in DETAIL_PREFIXES:
             raise ValueError(f"{s.name}: no detailed family for it (families: {', '.join(DETAIL_PREFIXES)})")
         out.append(replace(s, name=DETAIL_PREFIXES[s.name[0]] + s.name[1:], vehicle_detail=True))
+    return out
+
+
+GREENERY_PREFIXES = {"p": "q", "d": "g", "v": "e"}   # a painted family -> its twins with greenery
+
+
+def greenery_towns(specs: list[TownSpec]) -> list[TownSpec]:
+    """Twins of the painted towns ``specs`` (p, d, v families: same windows, seeds, layout, vehicles, light and camera)
+    with greenery added (issue 31: real KITTI's residential streets): hedges along 30-80 % of the frontages still
+    free and large canopy trees at 30-80 % of the tree slots, crowns over the road. Renamed ``p…`` → ``q…``,
+    ``d…`` → ``g…``, ``v…`` → ``e…``; only the greenery differs, so a model trained on them instead of their
+    twins measures that one lever."""
+    out = []
+    for s in specs:
+        if s.name[0] not in GREENERY_PREFIXES:
+            raise ValueError(f"{s.name}: no greenery family for it (families: {', '.join(GREENERY_PREFIXES)})")
+        out.append(replace(s, name=GREENERY_PREFIXES[s.name[0]] + s.name[1:], greenery=True))
     return out
 
 

@@ -74,12 +74,14 @@ class TrafficParams:
 class TreeParams:
     spacing: float = field(default=14.0, metadata=bounded(lo=0, lo_open=True))  # metres between tree slots along each sidewalk
     density: float = field(default=0.6, metadata=bounded(lo=0, hi=1))  # probability a slot gets a tree
+    canopy: float = field(default=0.0, metadata=bounded(lo=0, hi=1))  # probability a slot gets a large canopy tree too, its crown (radius 3-5.5 m, bottom >= 4.5 m up) over the road (0 = none, as before)
 
 
 @dataclass(frozen=True)
 class PropParams:
     pole_spacing: float = field(default=30.0, metadata=bounded(lo=0, lo_open=True))  # street-light poles, metres along each side
     fence_fraction: float = field(default=0.5, metadata=bounded(lo=0, hi=1))  # probability a free frontage stretch gets a fence
+    hedge_fraction: float = field(default=0.0, metadata=bounded(lo=0, hi=1))  # probability a frontage stretch still free gets a hedge (0 = none, as before)
 
 
 @dataclass(frozen=True)
@@ -121,6 +123,10 @@ class Recipe:
             d["traffic"].pop("kerb_large_density")    # added after the first towns with traffic: theirs too
         if self.cars.detail == 0:
             d["cars"].pop("detail")                   # added later: the towns before it keep their hash
+        if self.trees.canopy == 0:
+            d["trees"].pop("canopy")                  # added later (issue 31's greenery): the towns before keep theirs
+        if self.props.hedge_fraction == 0:
+            d["props"].pop("hedge_fraction")
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -194,7 +200,7 @@ def _validate(r: Recipe, path) -> None:
     if last >= n:
         raise MonoMapError(f"{path}: frame {r.frames - 1} needs pose {last} but trajectory {r.trajectory} has {n} poses")
     for name in ("density", "black_fraction", "van_fraction", "glass_fraction", "storefront_fraction",
-                 "brick_fraction", "fence_fraction"):
+                 "brick_fraction", "fence_fraction", "hedge_fraction", "canopy"):
         for sec in (r.buildings, r.cars, r.trees, r.props):
             v = getattr(sec, name, None)
             if v is not None and not 0.0 <= v <= 1.0:

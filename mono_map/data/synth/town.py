@@ -18,7 +18,7 @@ from mono_map.data.synth import materials as M
 from mono_map.data.synth.meshes import MeshBuilder, box
 from mono_map.data.synth.placement import (BRICK, STOREFRONT, ObjectTable, Occupancy, box_axes, clear_of_road,
                                            footprint_samples, frame_at)
-from mono_map.data.synth.props import add_cars, add_fences, add_trees_and_poles
+from mono_map.data.synth.props import add_canopy_trees, add_cars, add_fences, add_hedges, add_trees_and_poles
 from mono_map.data.synth.traffic import add_traffic
 from mono_map.data.synth.trajectory import PathIndex, RoadPath, build_road_path, town_poses
 
@@ -81,6 +81,13 @@ def build_town(recipe) -> Town:
         add_cars(mb, objs, occ, path, index, rng, recipe, side, counts)
         add_trees_and_poles(mb, objs, occ, path, index, rng, recipe, side, edges[side], counts)
         add_fences(mb, objs, occ, path, index, rng, recipe, side, edges[side], counts)
+    for side in (+1, -1):                         # greenery: each from its own random stream, so that a town
+        if recipe.trees.canopy > 0:               # without it draws exactly what it drew before
+            add_canopy_trees(mb, objs, occ, path, index, np.random.default_rng([recipe.seed, 8, side + 1]), recipe,
+                             side, edges[side], counts)
+        if recipe.props.hedge_fraction > 0:
+            add_hedges(mb, objs, occ, path, index, np.random.default_rng([recipe.seed, 9, side + 1]), recipe, side,
+                       edges[side], counts)
     lane_vehicles, lane_ids = np.zeros((0, 4, 2)), np.zeros(0, np.int32)
     if recipe.traffic.enabled():                  # after everything else, from its own random stream
         lane_vehicles, lane_ids = add_traffic(mb, objs, occ, path, index, recipe, counts)
