@@ -1,6 +1,6 @@
 """The props of the procedural town (:mod:`mono_map.data.synth.town`): parked cars, trees, street lamps and
-fences on both sides of the road, as triangle meshes with a material and an object id per triangle.
-World frame: the first cam0 frame (x right, y down, z forward); metres.
+fences on both sides of the road, and greenery (hedges, canopy trees over the road), as triangle meshes with a
+material and an object id per triangle. World frame: the first cam0 frame (x right, y down, z forward); metres.
 """
 
 from __future__ import annotations
@@ -204,7 +204,7 @@ def add_hedges(mb, objs, occ, path, index, rng, recipe, side, edge, counts):
         color = HEDGE_COLORS[int(rng.integers(len(HEDGE_COLORS)))]
         lat = edge + st.sidewalk_width + 0.1 + thick / 2
         oid = None
-        for s0 in np.arange(s, min(s + block, path.s[-1] - step), step) if on else ():
+        for s0 in np.arange(s, min(s + block, path.s[-1] - step), step) if on else []:
             k0, p0, f0, r0 = frame_at(path, s0)
             k1, p1, f1, r1 = frame_at(path, s0 + step)
             a, b = p0 + side * r0 * lat, p1 + side * r1 * lat
