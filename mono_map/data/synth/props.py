@@ -142,6 +142,23 @@ def add_trees_and_poles(mb, objs, occ, path, index, rng, recipe, side, edge, cou
         s += pp.pole_spacing * float(rng.uniform(0.8, 1.2))
 
 
+def frontage_segments(path, s: float, block: float, step: float, offset: float):
+    """The straight pieces of a stretch of frontage: from arc length ``s`` (m) over ``block`` m in ``step`` m pieces at
+    the lateral ``offset`` (m, + right of the road path); per piece (start, end, middle, forward unit, right unit,
+    length), world frame. Pieces shorter than 1 m or longer than 4 m (the path turning sharply) are skipped."""
+    for s0 in np.arange(s, min(s + block, path.s[-1] - step), step):
+        k0, p0, f0, r0 = frame_at(path, s0)
+        k1, p1, f1, r1 = frame_at(path, s0 + step)
+        a = p0 + r0 * offset
+        b = p1 + r1 * offset
+        f = b - a
+        length = np.linalg.norm(f)
+        if length < 1.0 or length > 4.0:
+            continue
+        f /= length
+        yield a, b, (a + b) / 2, f, np.cross([0.0, 1.0, 0.0], f), length
+
+
 _FENCE_COLORS = [(0.45, 0.32, 0.20), (0.55, 0.45, 0.32), (0.30, 0.32, 0.30), (0.62, 0.60, 0.55)]
 
 
@@ -159,18 +176,7 @@ def add_fences(mb, objs, occ, path, index, rng, recipe, side, edge, counts):
         color = _FENCE_COLORS[int(rng.integers(len(_FENCE_COLORS)))]
         oid = None
         if on:
-            for s0 in np.arange(s, min(s + block, path.s[-1] - step), step):
-                k0, p0, f0, r0 = frame_at(path, s0)
-                k1, p1, f1, r1 = frame_at(path, s0 + step)
-                a = p0 + side * r0 * lat
-                b = p1 + side * r1 * lat
-                f = b - a
-                length = np.linalg.norm(f)
-                if length < 1.0 or length > 4.0:
-                    continue
-                f /= length
-                r = np.cross([0.0, 1.0, 0.0], f)
-                mid = (a + b) / 2
+            for a, b, mid, f, r, length in frontage_segments(path, s, block, step, side * lat):
                 pts = np.stack([a, mid, b])[:, [0, 2]]
                 inner = np.stack([0.75 * a + 0.25 * b, mid, 0.25 * a + 0.75 * b])[:, [0, 2]]
                 if not clear_of_road(index, pts, edge + st.sidewalk_width - 0.3) or not occ.free(inner):
@@ -204,17 +210,7 @@ def add_hedges(mb, objs, occ, path, index, rng, recipe, side, edge, counts):
         color = HEDGE_COLORS[int(rng.integers(len(HEDGE_COLORS)))]
         lat = edge + st.sidewalk_width + 0.1 + thick / 2
         oid = None
-        for s0 in np.arange(s, min(s + block, path.s[-1] - step), step) if on else []:
-            k0, p0, f0, r0 = frame_at(path, s0)
-            k1, p1, f1, r1 = frame_at(path, s0 + step)
-            a, b = p0 + side * r0 * lat, p1 + side * r1 * lat
-            f = b - a
-            length = np.linalg.norm(f)
-            if length < 1.0 or length > 4.0:
-                continue
-            f /= length
-            r = np.cross([0.0, 1.0, 0.0], f)
-            mid = (a + b) / 2
+        for a, b, mid, f, r, length in frontage_segments(path, s, block, step, side * lat) if on else []:
             pts = footprint_samples(mid, f, r, length / 2 * 0.8, thick / 2, step=0.4)
             if not clear_of_road(index, pts, edge + st.sidewalk_width - 0.3) or not occ.free(pts):
                 continue

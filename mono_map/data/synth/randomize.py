@@ -245,11 +245,17 @@ def detailed_towns(specs: list[TownSpec]) -> list[TownSpec]:
     their vehicles, renamed by family: ``t…`` → ``p…``, ``h…`` → ``d…``, ``k…`` → ``v…`` (``k01_0a`` →
     ``v01_0a``). Only the vehicles' paint differs, so a model trained on them instead of their flat-painted twins
     measures that one lever (issue 31)."""
+    return twins(specs, DETAIL_PREFIXES, "detailed", vehicle_detail=True)
+
+
+def twins(specs: list[TownSpec], prefixes: dict, kind: str, **flags) -> list[TownSpec]:
+    """The towns ``specs`` renamed by family (``prefixes``: first letter → the twins' first letter) with ``flags``
+    set; a town of a family without ``kind`` twins is refused (ValueError)."""
     out = []
     for s in specs:
-        if s.name[0] not in DETAIL_PREFIXES:
-            raise ValueError(f"{s.name}: no detailed family for it (families: {', '.join(DETAIL_PREFIXES)})")
-        out.append(replace(s, name=DETAIL_PREFIXES[s.name[0]] + s.name[1:], vehicle_detail=True))
+        if s.name[0] not in prefixes:
+            raise ValueError(f"{s.name}: no {kind} family for it (families: {', '.join(prefixes)})")
+        out.append(replace(s, name=prefixes[s.name[0]] + s.name[1:], **flags))
     return out
 
 
@@ -262,12 +268,7 @@ def greenery_towns(specs: list[TownSpec]) -> list[TownSpec]:
     free and large canopy trees at 30-80 % of the tree slots, crowns over the road. Renamed ``p…`` → ``q…``,
     ``d…`` → ``g…``, ``v…`` → ``e…``; only the greenery differs, so a model trained on them instead of their
     twins measures that one lever."""
-    out = []
-    for s in specs:
-        if s.name[0] not in GREENERY_PREFIXES:
-            raise ValueError(f"{s.name}: no greenery family for it (families: {', '.join(GREENERY_PREFIXES)})")
-        out.append(replace(s, name=GREENERY_PREFIXES[s.name[0]] + s.name[1:], greenery=True))
-    return out
+    return twins(specs, GREENERY_PREFIXES, "greenery", greenery=True)
 
 
 VALIDATION_FIRST_POSE = 1060   # trajectory 09: poses 1060.. are the held-out validation town
