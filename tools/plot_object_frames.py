@@ -4,8 +4,9 @@
         --names k007347,000002,k000003 --out docs/images/object_randconv.jpg [--real-root ../shared/kitti_real]
 
 One row per frame (looked up in object/training and object/extra); inverse depth (1/m) on one colour scale
-(1/80 … 1/3), the error as log2(predicted / LiDAR depth) at the LiDAR points (red too far, blue too near,
-saturated at a factor of 2); each model's panel is titled with the frame's AbsRel (log-space expectation).
+(1/80 … 1/3), the error as log2(predicted / LiDAR depth) at the LiDAR points (``viz.plots.error_image``: each point
+spread to 3×3 pixels; red too far, blue too near, saturated at a factor of 2, grey no point); each model's panel is
+titled with the frame's AbsRel (log-space expectation).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ def main(argv=None) -> None:
     from mono_map.depth.inference import DepthPredictor, checkpoint_path, default_precision
     from mono_map.errors import MonoMapError
     from mono_map.eval.depth_evaluation import object_frames
-    from mono_map.viz.plots import write_picture
+    from mono_map.viz.plots import error_image, write_picture
 
     root = Path(args.real_root) / "object"
     folders = [d for d in (root / "training", root / "extra") if d.is_dir()]
@@ -57,6 +58,8 @@ def main(argv=None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    grey_nan = plt.get_cmap("RdBu_r").copy()
+    grey_nan.set_bad("0.55")                 # no LiDAR point: grey, as tools/plot_predictions.py --error
     cols = 2 + 2 * len(models)
     fig, axes = plt.subplots(len(names), cols, figsize=(4.2 * cols, 1.5 * len(names)), dpi=110)
     ax = np.asarray(axes).reshape(len(names), cols)
@@ -78,7 +81,7 @@ def main(argv=None) -> None:
             absrel = float(np.mean(np.abs(d[v, u] - gt[v, u]) / gt[v, u]))
             ax[r, 2 + 2 * k].imshow(1.0 / np.maximum(d, 1e-3), cmap="magma", vmin=1 / 80, vmax=1 / 3)
             ax[r, 2 + 2 * k].set_title(f"{m}: AbsRel {absrel:.3f}", fontsize=8)
-            points(ax[r, 3 + 2 * k], np.log2(d[v, u] / gt[v, u]), "RdBu_r", -1, 1)
+            ax[r, 3 + 2 * k].imshow(error_image(d, gt), cmap=grey_nan, vmin=-1, vmax=1)
             if r == 0:
                 ax[r, 3 + 2 * k].set_title(f"{m}: log2(pred / LiDAR)", fontsize=8)
     ax[0, 0].set_title("image", fontsize=8)

@@ -19,19 +19,7 @@ from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq
 from mono_map.data.prepare import prepare_sequence
 from mono_map.depth.inference import DepthPredictor
 from mono_map.frames import parse_frames
-from mono_map.viz.plots import figure
-
-
-def error_image(depth: np.ndarray, lidar: np.ndarray) -> np.ndarray:
-    """log2(depth / lidar) at the LiDAR pixels (each spread to its 3×3 neighbourhood, the nearer point winning),
-    NaN elsewhere; both (H,W) metres, 0 = no LiDAR point."""
-    H, W = lidar.shape
-    pad = np.pad(np.where(lidar > 0, lidar, np.inf), 1, constant_values=np.inf)
-    near = np.min([pad[dy:dy + H, dx:dx + W] for dy in range(3) for dx in range(3)], axis=0)   # 3×3 minimum
-    ok = np.isfinite(near) & (depth > 0)
-    out = np.full(depth.shape, np.nan, np.float32)
-    out[ok] = np.log2(depth[ok] / near[ok])
-    return out
+from mono_map.viz.plots import error_image, figure
 
 
 def main(argv=None) -> int:

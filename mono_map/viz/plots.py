@@ -42,6 +42,18 @@ def figure(path: str | Path, dpi: int, **savefig) -> Iterator:
         plt.close(plt.gcf())
 
 
+def error_image(depth: np.ndarray, lidar: np.ndarray) -> np.ndarray:
+    """log2(depth / lidar) at the LiDAR pixels (each spread to its 3×3 neighbourhood, the nearer point winning),
+    NaN elsewhere; both (H,W) metres, 0 = no LiDAR point."""
+    H, W = lidar.shape
+    pad = np.pad(np.where(lidar > 0, lidar, np.inf), 1, constant_values=np.inf)
+    near = np.min([pad[dy:dy + H, dx:dx + W] for dy in range(3) for dx in range(3)], axis=0)   # 3×3 minimum
+    ok = np.isfinite(near) & (depth > 0)
+    out = np.full(depth.shape, np.nan, np.float32)
+    out[ok] = np.log2(depth[ok] / near[ok])
+    return out
+
+
 def write_picture(path: str | Path, rgb: np.ndarray) -> None:
     """Write an H×W×3 uint8 RGB picture to ``path`` atomically: JPEG (quality 85) for .jpg/.jpeg, else PNG."""
     import cv2
