@@ -195,12 +195,28 @@ def test_replay_mixes_supervised_batches(tiny_root, tiny_ckpt, tmp_path):
 
 def test_decoder_only_keeps_the_encoder_and_more_sources_run(tiny_root, tiny_ckpt, tmp_path):
     base, _ = load_checkpoint(tiny_ckpt)
-    run(tiny_root, tiny_ckpt, tmp_path, 2, "s", "o", train_encoder=False, per_side=2)
+    assert AdaptConfig().train_encoder is False                    # the default: the decoder and head adapt
+    run(tiny_root, tiny_ckpt, tmp_path, 2, "s", "o", per_side=2)
     _, w = last_weights(tmp_path / "s")
     b = base.state_dict()
     enc = [k for k in w if k.startswith("encoder.") and w[k].is_floating_point()]
     assert enc and all(torch.equal(w[k], b[k]) for k in enc)
     assert not all(torch.equal(w[k], b[k]) for k in w if not k.startswith("encoder."))
+    run(tiny_root, tiny_ckpt, tmp_path, 2, "s2", "o2", train_encoder=True)   # --no-decoder-only: the whole network
+    _, w2 = last_weights(tmp_path / "s2")
+    assert not all(torch.equal(w2[k], b[k]) for k in enc)
+
+
+def test_adapt_cli_decoder_only_is_the_default_and_can_be_turned_off():
+    import argparse
+
+    from mono_map.cli import depth as cli_depth
+
+    root = argparse.ArgumentParser()
+    sub = root.add_subparsers(dest="cmd")
+    cli_depth.register(sub)
+    assert root.parse_args(["adapt", "--seq", "s"]).decoder_only is True
+    assert root.parse_args(["adapt", "--seq", "s", "--no-decoder-only"]).decoder_only is False
 
 
 def test_a_corrupt_saved_state_starts_the_run_again(tiny_root, tiny_ckpt, tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -94,7 +95,9 @@ def register(subparsers) -> None:
                    help="weight of supervised replay on --replay-seq, relative to the photometric loss at the start "
                         f"(default {d.replay:g} = off)")
     p.add_argument("--replay-seq", default=d.replay_seq, help="synthetic training sequence for replay (e.g. 06)")
-    p.add_argument("--decoder-only", action="store_true", help="keep the encoder's weights, adapt the decoder and head")
+    p.add_argument("--decoder-only", action=argparse.BooleanOptionalAction, default=not d.train_encoder,
+                   help="keep the encoder's weights, adapt the decoder and head; --no-decoder-only adapts the whole "
+                        f"network (default {'on' if not d.train_encoder else 'off'})")
     p.add_argument("--hints", type=float, default=d.hints,
                    help="weight of Depth Hints: the plane sweep's best depth (known poses, metric) supervises the pixels "
                         f"where its photometric error is lower than the prediction's (default {d.hints:g}; 0 = off)")
