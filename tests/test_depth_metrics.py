@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from mono_map.eval.depth_metrics import depth_errors, garg_crop_mask, image_errors, mean_errors
+from mono_map.eval.depth_metrics import distance_bands, depth_errors, garg_crop_mask, image_errors, mean_errors
 from mono_map.eval.hypotheses import oracle_errors, oracle_select
 from mono_map.eval.sparsification import auc, sparsification
 
@@ -33,6 +33,22 @@ def test_image_errors_mask_cap_and_crop():
     m = garg_crop_mask(100, 200)
     assert not m[0].any() and m[60, 100] and not m[:, 0].any()
     assert mean_errors([e, image_errors(np.zeros((3, 3)), pred[:3, :3])])["abs_rel"] == pytest.approx(0.1)
+
+
+def test_distance_bands_hand_computed():
+    """Each band [lo, hi) of ground truth (the last one closed): its share, the median of pred / gt, its AbsRel;
+    an empty band says so."""
+    gt = np.array([3.0, 7.0, 7.0, 9.0, 15.0, 80.0])
+    pred = np.array([3.3, 7.0, 3.5, 18.0, 15.0, 40.0])
+    b = distance_bands(gt, pred)
+    assert [(x["lo"], x["hi"]) for x in b] == [(0, 5), (5, 10), (10, 20), (20, 40), (40, 80)]
+    assert [x["n_pixels"] for x in b] == [1, 3, 1, 0, 1]                     # 80 m counts in the last band
+    assert sum(x["share"] for x in b) == pytest.approx(1.0) and b[1]["share"] == pytest.approx(0.5)
+    assert b[0]["median_ratio"] == pytest.approx(1.1) and b[0]["abs_rel"] == pytest.approx(0.1)
+    assert b[1]["median_ratio"] == pytest.approx(1.0)                          # ratios 1, 0.5, 2
+    assert b[1]["abs_rel"] == pytest.approx((0 + 0.5 + 1.0) / 3)
+    assert b[3]["median_ratio"] is None and b[3]["abs_rel"] is None
+    assert b[4]["median_ratio"] == pytest.approx(0.5)
 
 
 def test_sparsification_oracle_below_model_below_random():

@@ -31,7 +31,10 @@ def test_object_rows_equal_eval_depth_and_pool(tmp_path, kitti_real):
     r = rows["object (all 10)"]
     assert r["auc_are_oracle"] <= r["auc_are"] and r["abs_rel_median_scaled"] > 0
     md = (out / "eval_real.md").read_text()
-    assert md.count("\n| object") == 4
+    assert md.count("\n| object") == 8            # the main table and the table by LiDAR distance
+    bands = rows["object/training"]["by_distance"]
+    assert [b["lo"] for b in bands] == [0, 5, 10, 20, 40] and "40–80 m" in md
+    assert sum(b["n_pixels"] for b in bands) == rows["object/training"]["n_pixels"]
     # three of object/extra's files have scrambled colour channels: named, and left out of one pool
     assert [n for n, _ in json.loads((out / "eval_real.json").read_text())["scrambled_colour"]] == \
         ["k000000", "k000001", "k000002"]

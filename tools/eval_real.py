@@ -5,8 +5,10 @@ the ten pooled, the pool of those whose colour channels agree (three of object/e
 colours: ``scrambled_colour``), and the real sequence ``real01`` (every 2nd frame by default) — plus any ``--seq``
 (a real sequence under another root, e.g. a raw drive). Columns: AbsRel, RMSE, δ1 of the log-space
 expectation, AbsRel after per-frame median scaling (structure, not scale), sparsification AUC of ARE
-ranked by entropy (with the oracle's beside it), and the mean entropy. The metric code is
-``eval/depth_evaluation.evaluate_model`` (the one ``mono-map eval-depth`` runs); nothing is re-implemented.
+ranked by entropy (with the oracle's beside it), and the mean entropy; then a second table of the same rows by
+LiDAR distance (0–5, 5–10, 10–20, 20–40, 40–80 m: share of the pixels, median predicted ÷ LiDAR depth, AbsRel).
+The metric code is ``eval/depth_evaluation.evaluate_model`` (the one ``mono-map eval-depth`` runs); nothing is
+re-implemented.
 
     PYTHONPATH=. .venv/bin/python tools/eval_real.py [--model binary --model PATH ...] \\
         [--real-root ../shared/kitti_real] [--real01-frames 0:78:2] [--seq ROOT:NAME:FRAMES ...] \\
@@ -107,7 +109,8 @@ def evaluate_sources(models: list[str], sources: list[Source], fast: bool = Fals
                          "n_pixels": r["n_pixels"], "abs_rel": r["metrics"]["abs_rel"], "rmse": r["metrics"]["rmse"],
                          "a1": r["metrics"]["a1"], "abs_rel_median_scaled": r["metrics_median_scaled"]["abs_rel"],
                          "auc_are": s["auc"]["are"], "auc_are_oracle": s["auc_oracle"]["are"],
-                         "mean_entropy": r["mean_entropy"], "per_frame": r["per_frame"], "scrambled_colour": scrambled})
+                         "mean_entropy": r["mean_entropy"], "by_distance": r["by_distance"], "per_frame": r["per_frame"],
+                         "scrambled_colour": scrambled})
     return rows
 
 
@@ -118,6 +121,19 @@ def markdown(rows: list[dict]) -> str:
         L.append(f"| {r['source']} | {r['model']} | {r['n_frames']} | {r['abs_rel']:.3f} | {r['rmse']:.2f} | "
                  f"{r['a1']:.3f} | {r['abs_rel_median_scaled']:.3f} | {100 * r['auc_are']:.1f} | "
                  f"{100 * r['auc_are_oracle']:.1f} | {r['mean_entropy']:.2f} |")
+    return "\n".join(L) + "\n"
+
+
+def markdown_by_distance(rows: list[dict]) -> str:
+    """Per row, by LiDAR distance: share of the pixels / median predicted ÷ LiDAR depth / AbsRel."""
+    from mono_map.eval.depth_evaluation import distance_columns
+
+    if not rows:
+        return ""
+    L = [f"| source | model | {distance_columns(rows[0]['by_distance'])[0]} |",
+         "|---|---|" + "---:|" * len(rows[0]["by_distance"])]
+    for r in rows:
+        L.append(f"| {r['source']} | {r['model']} | " + " | ".join(distance_columns(r["by_distance"])[1]) + " |")
     return "\n".join(L) + "\n"
 
 
@@ -154,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"eval_real: error: {exc}", file=sys.stderr)
         return 2
     md = markdown(rows)
+    md += ("\nBy LiDAR distance (share of the pixels / median of predicted ÷ LiDAR depth, below 1 too near / "
+           "AbsRel):\n\n" + markdown_by_distance(rows))
     scrambled = sorted({n: a for r in rows for n, a in r["scrambled_colour"]}.items())
     if scrambled:
         md += ("\nColour channels that do not agree (smallest correlation; scored in the rows above except "

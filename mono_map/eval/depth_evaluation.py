@@ -12,7 +12,7 @@ from typing import Iterable
 
 import numpy as np
 
-from mono_map.eval.depth_metrics import LABELS, METRICS, image_errors, mean_errors, valid_mask
+from mono_map.eval.depth_metrics import LABELS, METRICS, distance_bands, image_errors, mean_errors, valid_mask
 from mono_map.eval.hypotheses import oracle_errors
 from mono_map.eval.sparsification import sparsification
 
@@ -238,6 +238,7 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
         "metrics_linear": mean_errors(per["linear"]),
         "metrics_argmax": mean_errors(per["argmax"]),
         "metrics_median_scaled": mean_errors(per["median"]),
+        "by_distance": distance_bands(P["gt"], P["log"]),         # pooled pixels, by ground-truth distance
         "median_ratio": {"median": float(np.median(ratios)), "std": float(np.std(ratios))} if ratios else None,
         "metrics_full_image": mean_errors(per["full"]) if per["full"] else None,
         "n_pixels_full_image": n_full if per["full"] else None,
@@ -257,6 +258,15 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
     }
 
 
+def distance_columns(bands: list[dict]) -> tuple[str, list[str]]:
+    """Markdown of one :func:`~mono_map.eval.depth_metrics.distance_bands` result: (the bands' column headers,
+    e.g. "| 0–5 m | … |", and its cells "share % / median ratio / AbsRel", "–" for an empty band)."""
+    head = " | ".join(f"{b['lo']:g}–{b['hi']:g} m" for b in bands)
+    cells = [f"{100 * b['share']:.1f} % / {b['median_ratio']:.2f} / {b['abs_rel']:.3f}" if b["n_pixels"] else "–"
+             for b in bands]
+    return head, cells
+
+
 def markdown_report(results: dict[str, dict], title: str) -> str:
     heads = list(results)
     L = [f"# {title}", ""]
@@ -269,6 +279,11 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
     for h in heads:
         r = results[h]
         L.append(f"| {h} | " + " | ".join(f"{r['metrics'][m]:.3f}" for m in METRICS) + f" | {r['ms_per_frame']:.0f} |")
+    head, _ = distance_columns(any_r["by_distance"])
+    L += ["", "## By ground-truth distance (share of the pixels / median predicted ÷ true depth, below 1 too near / "
+          "AbsRel)", "", f"| head | {head} |", "|---|" + "---:|" * len(any_r["by_distance"])]
+    for h in heads:
+        L.append(f"| {h} | " + " | ".join(distance_columns(results[h]["by_distance"])[1]) + " |")
     if any_r["n_frames"] <= 10:   # few frames (e.g. the real KITTI ones): every frame, since three are a hint
         L += ["", "## Per frame (AbsRel / RMSE / δ<1.25)", "", "| head | " + " | ".join(any_r["per_frame"]) + " |",
               "|---|" + "---|" * len(any_r["per_frame"])]

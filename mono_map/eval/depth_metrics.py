@@ -57,3 +57,22 @@ def mean_errors(per_image: list[dict[str, float]]) -> dict[str, float]:
     """Average per-image metrics (images without valid pixels are skipped)."""
     rows = [r for r in per_image if np.isfinite(r["abs_rel"])]
     return {k: float(np.mean([r[k] for r in rows])) if rows else float("nan") for k in METRICS}
+
+
+DISTANCE_BANDS = (0.0, 5.0, 10.0, 20.0, 40.0, 80.0)   # metres of ground truth
+
+
+def distance_bands(gt: np.ndarray, pred: np.ndarray, edges=DISTANCE_BANDS) -> list[dict]:
+    """The error's shape over distance: for each band [lo, hi) of ground-truth depth (the last band includes
+    its upper edge) over matching 1-D arrays of valid pixels (metres, pooled over images), the band's share of
+    the pixels, the median of pred / gt (below 1: predicted too near) and the AbsRel (None for an empty band)."""
+    gt = np.asarray(gt, np.float64)
+    pred = np.asarray(pred, np.float64)
+    out = []
+    for j, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        s = (gt >= lo) & ((gt <= hi) if j == len(edges) - 2 else (gt < hi))
+        n = int(s.sum())
+        out.append({"lo": float(lo), "hi": float(hi), "n_pixels": n, "share": n / gt.size if gt.size else 0.0,
+                    "median_ratio": float(np.median(pred[s] / gt[s])) if n else None,
+                    "abs_rel": float(np.mean(np.abs(pred[s] - gt[s]) / gt[s])) if n else None})
+    return out
