@@ -126,15 +126,10 @@ def markdown(rows: list[dict]) -> str:
 
 def markdown_by_distance(rows: list[dict]) -> str:
     """Per row, by LiDAR distance: share of the pixels / median predicted ÷ LiDAR depth / AbsRel."""
-    from mono_map.eval.depth_evaluation import distance_columns
+    from mono_map.eval.depth_evaluation import distance_table
 
-    if not rows:
-        return ""
-    L = [f"| source | model | {distance_columns(rows[0]['by_distance'])[0]} |",
-         "|---|---|" + "---:|" * len(rows[0]["by_distance"])]
-    for r in rows:
-        L.append(f"| {r['source']} | {r['model']} | " + " | ".join(distance_columns(r["by_distance"])[1]) + " |")
-    return "\n".join(L) + "\n"
+    lines = distance_table(["source", "model"], [([r["source"], r["model"]], r["by_distance"]) for r in rows])
+    return "\n".join(lines) + "\n" if lines else ""
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -258,13 +258,20 @@ def evaluate_model(predictor, frames: Iterable[tuple[str, np.ndarray, np.ndarray
     }
 
 
-def distance_columns(bands: list[dict]) -> tuple[str, list[str]]:
-    """Markdown of one :func:`~mono_map.eval.depth_metrics.distance_bands` result: (the bands' column headers,
-    e.g. "| 0–5 m | … |", and its cells "share % / median ratio / AbsRel", "–" for an empty band)."""
-    head = " | ".join(f"{b['lo']:g}–{b['hi']:g} m" for b in bands)
-    cells = [f"{100 * b['share']:.1f} % / {b['median_ratio']:.2f} / {b['abs_rel']:.3f}" if b["n_pixels"] else "–"
-             for b in bands]
-    return head, cells
+def distance_table(label_columns: list[str], rows: list[tuple[list[str], list[dict]]]) -> list[str]:
+    """Markdown lines of a table by ground-truth distance: per row its labels (``label_columns``' values) and one
+    :func:`~mono_map.eval.depth_metrics.distance_bands` result, one cell per band ("share % / median ratio /
+    AbsRel", "–" for an empty band); the bands' header from the first row. No rows: no lines."""
+    if not rows:
+        return []
+    bands = rows[0][1]
+    L = ["| " + " | ".join([*label_columns, *(f"{b['lo']:g}–{b['hi']:g} m" for b in bands)]) + " |",
+         "|" + "---|" * len(label_columns) + "---:|" * len(bands)]
+    for labels, result in rows:
+        cells = [f"{100 * b['share']:.1f} % / {b['median_ratio']:.2f} / {b['abs_rel']:.3f}" if b["n_pixels"] else "–"
+                 for b in result]
+        L.append("| " + " | ".join([*labels, *cells]) + " |")
+    return L
 
 
 def markdown_report(results: dict[str, dict], title: str) -> str:
@@ -279,11 +286,9 @@ def markdown_report(results: dict[str, dict], title: str) -> str:
     for h in heads:
         r = results[h]
         L.append(f"| {h} | " + " | ".join(f"{r['metrics'][m]:.3f}" for m in METRICS) + f" | {r['ms_per_frame']:.0f} |")
-    head, _ = distance_columns(any_r["by_distance"])
     L += ["", "## By ground-truth distance (share of the pixels / median predicted ÷ true depth, below 1 too near / "
-          "AbsRel)", "", f"| head | {head} |", "|---|" + "---:|" * len(any_r["by_distance"])]
-    for h in heads:
-        L.append(f"| {h} | " + " | ".join(distance_columns(results[h]["by_distance"])[1]) + " |")
+          "AbsRel)", ""]
+    L += distance_table(["head"], [([h], results[h]["by_distance"]) for h in heads])
     if any_r["n_frames"] <= 10:   # few frames (e.g. the real KITTI ones): every frame, since three are a hint
         L += ["", "## Per frame (AbsRel / RMSE / δ<1.25)", "", "| head | " + " | ".join(any_r["per_frame"]) + " |",
               "|---|" + "---|" * len(any_r["per_frame"])]
