@@ -44,7 +44,10 @@ def depth_rows(seq, frames: list[int], models: list[tuple[str, object]], width: 
         tiles = []
         for im, text in rows:
             im = cv2.resize(im, (width, round(h * scale)), interpolation=cv2.INTER_AREA).copy()
-            cv2.putText(im, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 3, cv2.LINE_AA)
+            # a dark outline from thin strokes shifted by a pixel: one thick stroke advances wider and left a ghost
+            # of the last glyph after the white text
+            for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                cv2.putText(im, text, (8 + dx, 22 + dy), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
             cv2.putText(im, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
             tiles.append(im)
         cols.append(np.concatenate(tiles, 0))
