@@ -79,6 +79,25 @@ def test_identity_pose_reproduces_the_image_and_automask_masks_a_static_camera(p
     assert used.sum() == 0 and float(loss) == 0.0
 
 
+def test_a_mirrored_sample_is_the_same_geometry(pair):
+    """Images, depth, intrinsics and pose all mirrored: the same loss; the images alone mirrored: a worse one."""
+    from mono_map.depth.adapter import mirror_images, mirror_intrinsics, mirror_poses
+
+    tgt, src, depth, K, T = pair
+    yes, no = torch.tensor([True]), torch.tensor([False])
+    assert torch.equal(mirror_images(tgt, no), tgt) and torch.equal(mirror_intrinsics(K, 9, no), K)
+    assert torch.equal(mirror_poses(T, no), T)
+    Km = mirror_intrinsics(K, tgt.shape[-1], yes)
+    assert float(Km[0, 0, 2]) == pytest.approx(tgt.shape[-1] - 1 - float(K[0, 0, 2]))
+    Tm = mirror_poses(T, yes)
+    assert float(Tm[0, 0, 3]) == pytest.approx(-float(T[0, 0, 3])) and float(Tm[0, 2, 3]) == pytest.approx(float(T[0, 2, 3]))
+    base = loss_of(tgt, src, depth, K, T)
+    mirrored = loss_of(mirror_images(tgt, yes), mirror_images(src, yes), mirror_images(depth, yes), Km, Tm)
+    assert mirrored == pytest.approx(base, rel=1e-4)
+    images_only = loss_of(mirror_images(tgt, yes), mirror_images(src, yes), mirror_images(depth, yes), K, T)
+    assert images_only > base * 1.15
+
+
 def test_trim_leaves_out_the_worst_pixels(pair):
     tgt, src, depth, K, T = pair
     full, used = ph.reprojection_loss(tgt, [src], depth, K, [T], automask=False)
@@ -140,6 +159,14 @@ def test_adapt_is_deterministic_resumes_and_names_its_settings(tiny_root, tiny_c
     d = run(tiny_root, tiny_ckpt, tmp_path, 3, "sd", "od", lr=3e-4)
     e = run(tiny_root, tiny_ckpt, tmp_path, 3, "se", "oe", seed=1)
     assert len({a.checkpoint.name, d.checkpoint.name, e.checkpoint.name}) == 3
+    # mirrored samples: deterministic, other weights, another name; off is the key of a run without the option
+    f = run(tiny_root, tiny_ckpt, tmp_path, 3, "sf", "of", mirror=0.5)
+    g = run(tiny_root, tiny_ckpt, tmp_path, 3, "sg", "og", mirror=0.5)
+    assert f.checkpoint.name == g.checkpoint.name and f.checkpoint.name != a.checkpoint.name
+    _, wf = last_weights(tmp_path / "sf")
+    _, wg = last_weights(tmp_path / "sg")
+    assert all(torch.equal(wf[k], wg[k]) for k in wf) and not all(torch.equal(wa[k], wf[k]) for k in wa)
+    assert "mirror" not in AdaptConfig().run_settings() and AdaptConfig(mirror=0.5).run_settings()["mirror"] == 0.5
 
 
 def test_the_adapted_checkpoint_predicts(tiny_root, tiny_ckpt, tmp_path):
@@ -166,7 +193,10 @@ def test_bad_inputs_one_line(tiny_root, tiny_ckpt, tmp_path, capsys):
              (["--model", str(tiny_ckpt), "--max-baseline", "0.1"], "--max-baseline"),
              (["--model", str(tiny_ckpt), "--data-root", str(no_poses)], "no poses"),
              (["--model", str(tiny_ckpt), "--hints", "-1"], "--hints"),
-             (["--model", str(tiny_ckpt), "--hints", "nan"], "--hints")]
+             (["--model", str(tiny_ckpt), "--hints", "nan"], "--hints"),
+             (["--model", str(tiny_ckpt), "--mirror", "1.5"], "--mirror"),
+             (["--model", str(tiny_ckpt), "--smoothness", "-1"], "--smoothness"),
+             (["--model", str(tiny_ckpt), "--mirror", "0.5", "--hints", "0.1"], "--mirror")]
     for extra, words in cases:
         capsys.readouterr()
         assert cli_main(base + extra) == 2, extra

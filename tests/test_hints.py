@@ -127,7 +127,7 @@ def test_the_mask_keeps_a_pixel_only_where_the_hint_explains_the_image_better(ti
     error[..., w // 2:] = float("inf")
     ad.hints = type("Hints", (), {"depth": torch.full((N, 1, h, w), 7.0), "error": error})()
     _, _, _, info = ad.photometric_loss([1, 2])
-    _, _, _, _, mask = ad.batch([1, 2])
+    _, _, _, _, mask, _ = ad.batch([1, 2])
     left = mask.clone()
     left[..., w // 2:] = False
     assert abs(info["hinted"] - float(left.sum()) / float(mask.sum())) < 1e-6

@@ -46,9 +46,9 @@ def measure(model_name, data_root, seq_name, frames, every: int, contrasts: list
     preds = {}
     with torch.no_grad():
         for t in picked:
-            x, tgt, srcs, poses, mask = adapter.batch([t])
+            x, tgt, srcs, poses, mask, K = adapter.batch([t])
             depth, _ = adapter.depth_and_beyond(adapter.forward(x), tgt.shape[-2:])
-            err, _ = min_reprojection_error(tgt, srcs, depth, adapter.K[None], poses)
+            err, _ = min_reprojection_error(tgt, srcs, depth, K, poses)
             gt = cv2.resize(seq.lidar_depth(data.indices[t]), (fw, fh), interpolation=cv2.INTER_NEAREST)
             preds[t] = (depth[0, 0, :fh, :fw].numpy(), err, mask, gt)
     rows = []

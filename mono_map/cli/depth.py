@@ -89,6 +89,8 @@ def register(subparsers) -> None:
                    help=f"sources before and after each target, each at >= 2x the previous baseline (default {d.per_side})")
     p.add_argument("--loss-scale", type=int, default=d.loss_scale, choices=(1, 2, 4),
                    help=f"photometric loss at 1/N of the network input size (default {d.loss_scale})")
+    p.add_argument("--smoothness", type=float, default=d.smoothness,
+                   help=f"weight of the edge-aware smoothness of the disparity (default {d.smoothness:g})")
     p.add_argument("--trim", type=float, default=d.trim,
                    help=f"leave out this fraction of each batch's highest-error pixels (default {d.trim:g})")
     p.add_argument("--replay", type=float, default=d.replay,
@@ -110,6 +112,9 @@ def register(subparsers) -> None:
     p.add_argument("--stereo", choices=STEREO_MODES, default=d.stereo,
                    help="each frame's right colour camera (image_3, KITTI's stereo partner) as one more source: auto = "
                         f"if every frame has it, on = required, off = never (default {d.stereo})")
+    p.add_argument("--mirror", type=float, default=d.mirror,
+                   help="probability that a drawn target is mirrored left-right with its sources, intrinsics and poses "
+                        f"(default {d.mirror:g} = off)")
     p.add_argument("--replay-root", default=None, help="data root of --replay-seq (default: --data-root)")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"steps between held-out photometric checks (the stopping rule; default {d.eval_every})")
@@ -375,9 +380,10 @@ def run_adapt(args) -> int:
     check_threads(args.threads)
     cfg = AdaptConfig(steps=args.steps, lr=args.lr, batch_size=args.batch_size, min_baseline=args.min_baseline,
                       max_baseline=args.max_baseline, max_offset=args.max_offset, per_side=args.per_side,
-                      loss_scale=args.loss_scale, trim=args.trim, replay=args.replay, replay_seq=args.replay_seq,
+                      loss_scale=args.loss_scale, smoothness=args.smoothness, trim=args.trim, replay=args.replay, replay_seq=args.replay_seq,
                       train_encoder=not args.decoder_only, eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision(),
-                      hints=args.hints, hint_loss=args.hint_loss, hint_contrast=args.hint_contrast, stereo=args.stereo)
+                      hints=args.hints, hint_loss=args.hint_loss, hint_contrast=args.hint_contrast, stereo=args.stereo,
+                      mirror=args.mirror)
     cfg.validate()
     selection = parse_frames(args.frames) if args.frames is not None else None   # None: adapt's default
     torch.set_num_threads(args.threads)

@@ -74,6 +74,10 @@ class AdaptConfig:
     # 0.53 m baseline at the same instant, so it also sees a stopped car's frames and things moving with the car.
     # Off by default: no gain measured on the synthetic towns (06, 00, 07's stop); real01 has no image_3
     stereo: str = "off"
+    # probability that a drawn target is mirrored left-right with its sources (images, intrinsics, poses and the
+    # base model's p(no surface) mirrored together: the same geometry seen in a mirror; monodepth2 flips half its
+    # training samples). 0 = off
+    mirror: float = 0.0
 
     def validate(self) -> None:
         checks = [(self.steps >= 1, "--steps", f"must be >= 1, got {self.steps}"),
@@ -84,6 +88,8 @@ class AdaptConfig:
                    f"must exceed --min-baseline ({self.min_baseline} m), got {self.max_baseline}"),
                   (self.max_offset >= 1, "max_offset", f"must be >= 1, got {self.max_offset}"),
                   (self.per_side >= 1, "--per-side", f"must be >= 1, got {self.per_side}"),
+                  (np.isfinite(self.smoothness) and self.smoothness >= 0, "--smoothness",
+                   f"must be a number >= 0, got {self.smoothness}"),
                   (self.replay >= 0, "--replay", f"must be >= 0, got {self.replay}"),
                   (not self.replay or bool(self.replay_seq), "--replay", "needs --replay-seq (a synthetic training sequence)"),
                   (self.replay_seq != "00", "--replay-seq", "00 is the held-out evaluation sequence, never trained on"),
@@ -96,6 +102,9 @@ class AdaptConfig:
                   (np.isfinite(self.hint_contrast) and self.hint_contrast >= 0, "--hint-contrast",
                    f"must be a number >= 0, got {self.hint_contrast}"),
                   (self.hint_loss in HINT_LOSSES, "--hint-loss", f"must be one of {', '.join(HINT_LOSSES)}, got {self.hint_loss}"),
+                  (isinstance(self.mirror, (int, float)) and 0 <= self.mirror <= 1, "--mirror",
+                   f"must be a probability in [0, 1], got {self.mirror}"),
+                  (not (self.mirror and self.hints), "--mirror", "cannot be combined with --hints (not mirrored)"),
                   (self.stereo in STEREO_MODES, "--stereo", f"must be one of {', '.join(STEREO_MODES)}, got {self.stereo}")]
         for ok, option, why in checks:
             if not ok:
@@ -109,6 +118,8 @@ class AdaptConfig:
         if not self.hints:   # off: the key of a run from before hints existed (its checkpoint name stays valid)
             for k in ("hints", "hint_loss", "hint_contrast"):
                 d.pop(k)
+        if not self.mirror:  # off: the key of a run from before mirroring existed
+            d.pop("mirror")
         return d
 
 

@@ -69,9 +69,10 @@ class Adapter:
             out.append([near[k % len(near)] for k in range(n)] + [self.sources[t][-1]])
         return out
 
-    def batch(self, targets: list[int]):
+    def batch(self, targets: list[int], mirrored: np.ndarray | None = None):
         """Network inputs (B,3,H,W); at the loss resolution the targets, 2·per_side sources each (repeated if
-        fewer exist), their poses T_src_tgt (B,4,4) and the pixels that count (content, not sky)."""
+        fewer exist), their poses T_src_tgt (B,4,4), the pixels that count (content, not sky) and the
+        intrinsics (B,3,3). Samples where ``mirrored`` (B,) is true are all of these seen in a mirror."""
         f = self.frames
         x = to_tensor(f.images[targets])
         tgt = to_tensor(self.small[targets])
@@ -83,15 +84,23 @@ class Adapter:
         if self.base_beyond is not None:
             sky = F.interpolate(self.base_beyond[targets], size=tgt.shape[-2:], mode="nearest") > self.cfg.sky_threshold
             mask = mask & ~sky
-        return x, tgt, sources, poses, mask
+        K = self.K.expand(len(targets), 3, 3)
+        if mirrored is not None and mirrored.any():
+            m = torch.as_tensor(mirrored, dtype=torch.bool)
+            x, tgt, mask = mirror_images(x, m), mirror_images(tgt, m), mirror_images(mask, m)
+            sources = [mirror_images(s, m) for s in sources]
+            poses = [mirror_poses(T, m) for T in poses]
+            K = mirror_intrinsics(K, tgt.shape[-1], m)
+        return x, tgt, sources, poses, mask, K
 
-    def photometric_loss(self, targets: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
-        """(photometric loss, smoothness, beyond logit or None, info) of ``targets``; with hints on, the hint
-        term is in ``info["hint_loss"]`` (a tensor) and the share of hinted pixels in ``info["hinted"]``."""
-        x, tgt, sources, poses, mask = self.batch(targets)
+    def photometric_loss(self, targets: list[int], mirrored: np.ndarray | None = None
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
+        """(photometric loss, smoothness, beyond logit or None, info) of ``targets`` (those ``mirrored`` seen in
+        a mirror); with hints on, the hint term is in ``info["hint_loss"]`` (a tensor) and the share of hinted
+        pixels in ``info["hinted"]``."""
+        x, tgt, sources, poses, mask, K = self.batch(targets, mirrored)
         low = self.forward(x)
         depth, beyond_logit = self.depth_and_beyond(low, tgt.shape[-2:])
-        K = self.K.expand(len(targets), 3, 3)
         if self.frames.stereo:   # the neighbours and the right image are auto-masked apart
             reproj, seen = photometric.grouped_reprojection(
                 tgt, [(sources[:-1], poses[:-1]), (sources[-1:], poses[-1:])], depth, K)
@@ -126,11 +135,15 @@ class Adapter:
             loss = head_loss(self.head, out, dep, self.bins, beyond=self.beyond) * (n_use / n_all)
         return loss, float(n_use) / float(n_all)
 
-    def beyond_loss(self, beyond_logit: torch.Tensor | None, targets: list[int]) -> torch.Tensor:
+    def beyond_loss(self, beyond_logit: torch.Tensor | None, targets: list[int],
+                    mirrored: np.ndarray | None = None) -> torch.Tensor:
         """KL(base ‖ current) of the Bernoulli "no surface within range", mean over pixels: 0 at the base."""
         if beyond_logit is None or self.base_beyond is None or not self.cfg.beyond_weight:
             return torch.zeros(())
-        p = self.base_beyond[targets, 0].clamp(1e-4, 1 - 1e-4)
+        p = self.base_beyond[targets]
+        if mirrored is not None and mirrored.any():
+            p = mirror_images(p, torch.as_tensor(mirrored, dtype=torch.bool))
+        p = p[:, 0].clamp(1e-4, 1 - 1e-4)
         bce = F.binary_cross_entropy_with_logits(beyond_logit, p, reduction="none")
         ent = -(p * p.log() + (1 - p) * (1 - p).log())
         return (bce - ent).mean()
@@ -153,10 +166,12 @@ class Adapter:
         rng = np.random.default_rng([self.cfg.seed, step])
         train = self.train_targets
         targets = [train[k] for k in rng.choice(len(train), size=min(self.cfg.batch_size, len(train)), replace=False)]
+        mirrored = rng.random(len(targets)) < self.cfg.mirror if self.cfg.mirror else None
         self.model.train()
         freeze_batchnorm(self.model)
-        photo, smooth, beyond_logit, info = self.photometric_loss(targets)
-        loss = photo + self.cfg.smoothness * smooth + self.cfg.beyond_weight * self.beyond_loss(beyond_logit, targets)
+        photo, smooth, beyond_logit, info = self.photometric_loss(targets, mirrored)
+        loss = (photo + self.cfg.smoothness * smooth
+                + self.cfg.beyond_weight * self.beyond_loss(beyond_logit, targets, mirrored))
         hint = info.pop("hint_loss", None)
         if hint is not None:
             loss = loss + self.cfg.hints * hint
@@ -179,6 +194,27 @@ class Adapter:
         self.model.eval()
         errs = [float(self.photometric_loss([t])[0]) for t in targets]
         return float(np.mean(errs)) if errs else float("nan")
+
+
+# ------------------------------------------------------------------ mirrored samples
+def mirror_images(a: torch.Tensor, which: torch.Tensor) -> torch.Tensor:
+    """(B,C,H,W) with the samples ``which`` (B,) bool flipped left-right (the whole width)."""
+    return torch.where(which.view(-1, 1, 1, 1), a.flip(-1), a)
+
+
+def mirror_intrinsics(K: torch.Tensor, width: int, which: torch.Tensor) -> torch.Tensor:
+    """Intrinsics (B,3,3) of images ``width`` pixels wide flipped left-right where ``which``: pixel u -> width-1-u
+    (pixel centres at integers), so cx -> width-1-cx and the skew changes sign."""
+    M = K.clone()
+    M[:, 0, 2] = width - 1 - K[:, 0, 2]
+    M[:, 0, 1] = -K[:, 0, 1]
+    return torch.where(which.view(-1, 1, 1), M, K)
+
+
+def mirror_poses(T: torch.Tensor, which: torch.Tensor) -> torch.Tensor:
+    """Relative poses (B,4,4) in the mirrored cameras (x -> -x in both): S·T·S, S = diag(-1, 1, 1, 1)."""
+    S = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=T.dtype))
+    return torch.where(which.view(-1, 1, 1), S @ T @ S, T)
 
 
 def downsample_images(images: np.ndarray, factor: int) -> np.ndarray:
