@@ -380,7 +380,8 @@ def run_adapt(args) -> int:
     check_threads(args.threads)
     cfg = AdaptConfig(steps=args.steps, lr=args.lr, batch_size=args.batch_size, min_baseline=args.min_baseline,
                       max_baseline=args.max_baseline, max_offset=args.max_offset, per_side=args.per_side,
-                      loss_scale=args.loss_scale, smoothness=args.smoothness, trim=args.trim, replay=args.replay, replay_seq=args.replay_seq,
+                      loss_scale=args.loss_scale, smoothness=args.smoothness, trim=args.trim, replay=args.replay,
+                      replay_seq=args.replay_seq,
                       train_encoder=not args.decoder_only, eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision(),
                       hints=args.hints, hint_loss=args.hint_loss, hint_contrast=args.hint_contrast, stereo=args.stereo,
                       mirror=args.mirror)
