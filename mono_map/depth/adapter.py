@@ -69,10 +69,10 @@ class Adapter:
             out.append([near[k % len(near)] for k in range(n)] + [self.sources[t][-1]])
         return out
 
-    def batch(self, targets: list[int], mirrored: np.ndarray | None = None):
+    def batch(self, targets: list[int], mirrored: torch.Tensor | None = None):
         """Network inputs (B,3,H,W); at the loss resolution the targets, 2·per_side sources each (repeated if
         fewer exist), their poses T_src_tgt (B,4,4), the pixels that count (content, not sky) and the
-        intrinsics (B,3,3). Samples where ``mirrored`` (B,) is true are all of these seen in a mirror."""
+        intrinsics (B,3,3). Samples where ``mirrored`` (B,) bool is true are all of these seen in a mirror."""
         f = self.frames
         x = to_tensor(f.images[targets])
         tgt = to_tensor(self.small[targets])
@@ -85,15 +85,14 @@ class Adapter:
             sky = F.interpolate(self.base_beyond[targets], size=tgt.shape[-2:], mode="nearest") > self.cfg.sky_threshold
             mask = mask & ~sky
         K = self.K.expand(len(targets), 3, 3)
-        if mirrored is not None and mirrored.any():
-            m = torch.as_tensor(mirrored, dtype=torch.bool)
-            x, tgt, mask = mirror_images(x, m), mirror_images(tgt, m), mirror_images(mask, m)
-            sources = [mirror_images(s, m) for s in sources]
-            poses = [mirror_poses(T, m) for T in poses]
-            K = mirror_intrinsics(K, tgt.shape[-1], m)
+        if mirrored is not None:
+            x, tgt, mask = mirror_images(x, mirrored), mirror_images(tgt, mirrored), mirror_images(mask, mirrored)
+            sources = [mirror_images(s, mirrored) for s in sources]
+            poses = [mirror_poses(T, mirrored) for T in poses]
+            K = mirror_intrinsics(K, tgt.shape[-1], mirrored)
         return x, tgt, sources, poses, mask, K
 
-    def photometric_loss(self, targets: list[int], mirrored: np.ndarray | None = None
+    def photometric_loss(self, targets: list[int], mirrored: torch.Tensor | None = None
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, dict]:
         """(photometric loss, smoothness, beyond logit or None, info) of ``targets`` (those ``mirrored`` seen in
         a mirror); with hints on, the hint term is in ``info["hint_loss"]`` (a tensor) and the share of hinted
@@ -136,13 +135,13 @@ class Adapter:
         return loss, float(n_use) / float(n_all)
 
     def beyond_loss(self, beyond_logit: torch.Tensor | None, targets: list[int],
-                    mirrored: np.ndarray | None = None) -> torch.Tensor:
+                    mirrored: torch.Tensor | None = None) -> torch.Tensor:
         """KL(base ‖ current) of the Bernoulli "no surface within range", mean over pixels: 0 at the base."""
         if beyond_logit is None or self.base_beyond is None or not self.cfg.beyond_weight:
             return torch.zeros(())
         p = self.base_beyond[targets]
-        if mirrored is not None and mirrored.any():
-            p = mirror_images(p, torch.as_tensor(mirrored, dtype=torch.bool))
+        if mirrored is not None:
+            p = mirror_images(p, mirrored)
         p = p[:, 0].clamp(1e-4, 1 - 1e-4)
         bce = F.binary_cross_entropy_with_logits(beyond_logit, p, reduction="none")
         ent = -(p * p.log() + (1 - p) * (1 - p).log())
@@ -166,7 +165,8 @@ class Adapter:
         rng = np.random.default_rng([self.cfg.seed, step])
         train = self.train_targets
         targets = [train[k] for k in rng.choice(len(train), size=min(self.cfg.batch_size, len(train)), replace=False)]
-        mirrored = rng.random(len(targets)) < self.cfg.mirror if self.cfg.mirror else None
+        # the targets seen in a mirror (B,) bool, drawn only when mirroring is on (a run without it draws as before)
+        mirrored = torch.as_tensor(rng.random(len(targets)) < self.cfg.mirror) if self.cfg.mirror else None
         self.model.train()
         freeze_batchnorm(self.model)
         photo, smooth, beyond_logit, info = self.photometric_loss(targets, mirrored)
