@@ -196,6 +196,7 @@ def test_bad_inputs_one_line(tiny_root, tiny_ckpt, tmp_path, capsys):
              (["--model", str(tiny_ckpt), "--hints", "nan"], "--hints"),
              (["--model", str(tiny_ckpt), "--mirror", "1.5"], "--mirror"),
              (["--model", str(tiny_ckpt), "--smoothness", "-1"], "--smoothness"),
+             (["--model", str(tiny_ckpt), "--entropy-hold", "-1"], "--entropy-hold"),
              (["--model", str(tiny_ckpt), "--mirror", "0.5", "--hints", "0.1"], "--mirror")]
     for extra, words in cases:
         capsys.readouterr()
@@ -281,3 +282,62 @@ def test_adapt_with_hints_is_deterministic_and_named_by_them(tiny_root, tiny_ckp
     assert "hints" not in AdaptConfig().run_settings() and AdaptConfig(hints=0.5).run_settings()["hints"] == 0.5
     with pytest.raises(MonoMapError, match="--hint-loss"):
         AdaptConfig(hints=1.0, hint_loss="l2").validate()
+
+
+def test_the_entropy_hold_is_zero_at_the_base_and_pulls_back_a_drifted_entropy(tiny_root, tmp_path):
+    """(H − H_base)² over the content pixels: 0 for the base model itself, > 0 once its weights move, a gradient
+    that lowers it, and no sky pixel counted."""
+    from mono_map.data.kitti import open_sequence
+    from mono_map.depth.adapt import load_frames
+    from mono_map.depth.adapter import Adapter, base_statistics
+
+    model, _ = load_checkpoint(write_tiny_checkpoint(tmp_path / "t.pt", beyond=True))
+    seq = open_sequence(tiny_root, "tiny")
+    data = load_frames(seq, list(range(len(seq))), model.cfg.input_height, model.cfg.input_width)
+    beyond, entropy = base_statistics(model, data.images, "fp32")
+    assert beyond is not None and entropy.shape == beyond.shape and float(entropy.min()) >= 0
+    ad = Adapter(model, beyond, data, choose_sources(data.poses[:, :3, 3], 0.3, 4.0, 10),
+                 AdaptConfig(entropy_hold=1.0))
+    ad.base_entropy = entropy
+    model.eval()
+    x = ph.to_tensor(data.images[[1, 2]])
+    assert float(ad.entropy_hold_loss(ad.forward(x), [1, 2]).detach()) < 1e-8
+    with torch.no_grad():                                  # a ramp on the head's bias: the entropy drifts
+        head = [m for m in model.modules() if isinstance(m, torch.nn.Conv2d)][-1]
+        head.bias.add_(torch.linspace(0.0, 4.0, head.bias.numel()))
+    held = ad.entropy_hold_loss(ad.forward(x), [1, 2])
+    assert float(held.detach()) > 1e-3
+    held.backward()
+    with torch.no_grad():
+        for p in model.parameters():
+            if p.grad is not None:
+                p.sub_(0.05 * p.grad)
+    assert float(ad.entropy_hold_loss(ad.forward(x), [1, 2])) < float(held)
+    # every pixel sky: nothing is counted
+    ad.base_beyond = torch.ones_like(beyond)
+    assert float(ad.entropy_hold_loss(ad.forward(x), [1, 2])) == 0
+
+
+def test_adapt_with_the_entropy_hold_keeps_the_base_entropy_and_is_named_by_it(tiny_root, tiny_ckpt, tmp_path):
+    from mono_map.data.kitti import open_sequence
+    from mono_map.depth.adapt import load_frames
+    from mono_map.depth.adapter import base_statistics
+
+    kw = dict(lr=2e-3, train_encoder=True)
+    free = run(tiny_root, tiny_ckpt, tmp_path, 6, "sa", "oa", **kw)
+    held = run(tiny_root, tiny_ckpt, tmp_path, 6, "sb", "ob", entropy_hold=1000.0, **kw)
+    again = run(tiny_root, tiny_ckpt, tmp_path, 6, "sc", "oc", entropy_hold=1000.0, **kw)
+    assert held.checkpoint.name == again.checkpoint.name != free.checkpoint.name
+    assert "entropy_hold" not in AdaptConfig().run_settings()
+    assert AdaptConfig(entropy_hold=0.5).run_settings()["entropy_hold"] == 0.5
+    base, _ = load_checkpoint(tiny_ckpt)
+    seq = open_sequence(tiny_root, "tiny")
+    data = load_frames(seq, list(range(len(seq))), base.cfg.input_height, base.cfg.input_width)
+    sky, h0 = base_statistics(base, data.images, "fp32")
+    counted = sky <= AdaptConfig().sky_threshold
+    drift = {}
+    for name, res in (("free", free), ("held", held)):
+        m, _ = load_checkpoint(res.checkpoint)
+        _, h = base_statistics(m, data.images, "fp32")
+        drift[name] = float((h - h0).abs()[counted].mean())
+    assert drift["held"] < 0.5 * drift["free"], drift

@@ -25,7 +25,7 @@ def measure(model_name, data_root, seq_name, frames, every: int, contrasts: list
 
     from mono_map.data.prepare import prepare_sequence
     from mono_map.depth.adapt import AdaptConfig, load_frames
-    from mono_map.depth.adapter import Adapter, base_beyond_probs
+    from mono_map.depth.adapter import Adapter, base_statistics
     from mono_map.depth.hints import compute_hints, hint_mask
     from mono_map.depth.inference import default_precision, load_checkpoint, resolve_checkpoint
     from mono_map.depth.photometric import min_reprojection_error
@@ -40,7 +40,7 @@ def measure(model_name, data_root, seq_name, frames, every: int, contrasts: list
     picked = {t: sources[t] for t in sorted(sources)[::every]}
     if not picked:
         raise MonoMapError(f"{seq.path}: no frame has a source 0.3-4 m away (too little motion)")
-    beyond = base_beyond_probs(model, data.images, cfg.precision) if model.cfg.beyond else None   # sky: as adapt
+    beyond, _ = base_statistics(model, data.images, cfg.precision)   # sky: as adapt
     adapter = Adapter(model.eval(), beyond, data, sources, cfg)
     fh, fw = data.content[0] // cfg.loss_scale, data.content[1] // cfg.loss_scale
     preds = {}

@@ -115,6 +115,9 @@ def register(subparsers) -> None:
     p.add_argument("--mirror", type=float, default=d.mirror,
                    help="probability that a drawn target is mirrored left-right with its sources, intrinsics and poses "
                         f"(default {d.mirror:g} = off)")
+    p.add_argument("--entropy-hold", type=float, default=d.entropy_hold,
+                   help="weight of the hold of each pixel's entropy to the base model's, keeping its ranking of the "
+                        f"pixels by confidence (default {d.entropy_hold:g} = off)")
     p.add_argument("--replay-root", default=None, help="data root of --replay-seq (default: --data-root)")
     p.add_argument("--eval-every", type=int, default=d.eval_every,
                    help=f"steps between held-out photometric checks (the stopping rule; default {d.eval_every})")
@@ -384,7 +387,7 @@ def run_adapt(args) -> int:
                       replay_seq=args.replay_seq,
                       train_encoder=not args.decoder_only, eval_every=args.eval_every, seed=args.seed, precision=args.precision or default_precision(),
                       hints=args.hints, hint_loss=args.hint_loss, hint_contrast=args.hint_contrast, stereo=args.stereo,
-                      mirror=args.mirror)
+                      mirror=args.mirror, entropy_hold=args.entropy_hold)
     cfg.validate()
     selection = parse_frames(args.frames) if args.frames is not None else None   # None: adapt's default
     torch.set_num_threads(args.threads)

@@ -1,6 +1,6 @@
 """The machinery of one adaptation step (:mod:`mono_map.depth.adapt` runs it): the network's expected depth at
-stride 4, monodepth2's photometric loss through the known poses (:mod:`mono_map.depth.photometric`), the hold of
-p(no surface) to the base model, the normalised supervised replay."""
+stride 4, monodepth2's photometric loss through the known poses (:mod:`mono_map.depth.photometric`), the holds of
+p(no surface) and of each pixel's entropy to the base model's, the normalised supervised replay."""
 
 from __future__ import annotations
 
@@ -35,6 +35,10 @@ class Adapter:
         self.K = torch.as_tensor(scaled_intrinsics(frames.K, 1 / sc, 1 / sc), dtype=torch.float32)
         self.train_targets = sorted(sources)  # the run sets them without its held-out frames
         self.hints = None                     # DepthHints at the loss resolution (set by the run when cfg.hints > 0)
+        self.base_entropy = None              # (N,1,h4,w4) the base model's entropy, nats (set by the run when cfg.entropy_hold > 0)
+        h4, w4 = -(-frames.images.shape[1] // 4), -(-frames.images.shape[2] // 4)
+        self.content4 = torch.zeros(1, 1, h4, w4, dtype=torch.bool)   # content at the network's output stride 4
+        self.content4[..., :-(-frames.content[0] // 4), :-(-frames.content[1] // 4)] = True
         self.optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
         freeze_batchnorm(model)
 
@@ -112,6 +116,8 @@ class Adapter:
         info = {"used": float(used.float().mean())}
         if self.hints is not None:
             info["hint_loss"], info["hinted"] = self.hint_loss(low, depth, reproj.detach(), mask, targets)
+        if self.base_entropy is not None and self.cfg.entropy_hold > 0:
+            info["entropy_loss"] = self.entropy_hold_loss(low, targets, mirrored)
         return photo, smooth, beyond_logit, info
 
     def hint_loss(self, low: torch.Tensor, depth: torch.Tensor, pred_error: torch.Tensor, mask: torch.Tensor,
@@ -133,6 +139,24 @@ class Adapter:
             out, dep = outputs_at_targets(low, torch.where(use, hd, torch.zeros_like(hd))[:, 0])
             loss = head_loss(self.head, out, dep, self.bins, beyond=self.beyond) * (n_use / n_all)
         return loss, float(n_use) / float(n_all)
+
+    def entropy_hold_loss(self, low: torch.Tensor, targets: list[int], mirrored: torch.Tensor | None = None
+                          ) -> torch.Tensor:
+        """Mean of (H − H_base)² (nats²) over the pixels at stride 4 that show content and no sky: each pixel's
+        entropy held to the base model's. The photometric loss moves the expected depth and says nothing about
+        its uncertainty; this keeps the base's (supervised) ranking of the pixels by confidence."""
+        from mono_map.depth.heads import split_beyond
+
+        x, _ = split_beyond(self.head, low, self.bins, self.beyond)
+        logp = torch.log_softmax(x[:, :self.bins.num_bins], 1)
+        ent = -(logp.exp() * logp).sum(1, keepdim=True)
+        base = self.base_entropy[targets]
+        keep = self.content4.expand_as(base)
+        if self.base_beyond is not None:
+            keep = keep & (self.base_beyond[targets] <= self.cfg.sky_threshold)
+        if mirrored is not None:
+            base, keep = mirror_images(base, mirrored), mirror_images(keep, mirrored)
+        return ((ent - base) ** 2 * keep).sum() / keep.sum().clamp_min(1)
 
     def beyond_loss(self, beyond_logit: torch.Tensor | None, targets: list[int],
                     mirrored: torch.Tensor | None = None) -> torch.Tensor:
@@ -161,7 +185,8 @@ class Adapter:
     # --- the algorithm
     def step(self, step: int) -> dict:
         """One step: draw targets, warp their sources through the predicted depth with the known poses,
-        minimise photometric error + smoothness + the beyond-range hold (+ normalised replay)."""
+        minimise photometric error + smoothness + the beyond-range hold (+ the entropy hold, Depth Hints,
+        normalised replay)."""
         rng = np.random.default_rng([self.cfg.seed, step])
         train = self.train_targets
         targets = [train[k] for k in rng.choice(len(train), size=min(self.cfg.batch_size, len(train)), replace=False)]
@@ -176,6 +201,10 @@ class Adapter:
         if hint is not None:
             loss = loss + self.cfg.hints * hint
             info["hint"] = float(hint.detach())
+        held = info.pop("entropy_loss", None)
+        if held is not None:
+            loss = loss + self.cfg.entropy_hold * held
+            info["entropy_hold"] = float(held.detach())
         rep = torch.zeros(())
         if self.replay is not None and self.cfg.replay > 0:
             rep = self.replay_loss(rng)
@@ -247,12 +276,14 @@ def save_state(path: Path, state: dict) -> None:
 
 
 @torch.no_grad()
-def base_beyond_probs(model, images: np.ndarray, precision: str, chunk: int = 8) -> torch.Tensor:
-    """The base model's p(no surface within range) at stride 4, (N,1,H/4,W/4)."""
+def base_statistics(model, images: np.ndarray, precision: str, chunk: int = 8
+                    ) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """The base model's p(no surface within range) (None for a model without it) and the entropy of its bin
+    distribution (nats) at stride 4, each (N,1,H/4,W/4)."""
     from mono_map.depth.heads import split_beyond
 
     model.eval()
-    out = []
+    beyond, entropy = [], []
     for k in range(0, len(images), chunk):
         x = to_tensor(images[k:k + chunk]).contiguous(memory_format=torch.channels_last)
         if precision == "bf16":
@@ -260,6 +291,9 @@ def base_beyond_probs(model, images: np.ndarray, precision: str, chunk: int = 8)
                 low = model(x, upsample=False).float()
         else:
             low = model(x, upsample=False)
-        _, logit = split_beyond(model.head, low, model.cfg.bins, True)
-        out.append(torch.sigmoid(logit).unsqueeze(1))
-    return torch.cat(out)
+        bins, logit = split_beyond(model.head, low, model.cfg.bins, model.cfg.beyond)
+        logp = torch.log_softmax(bins[:, :model.cfg.bins.num_bins], 1)
+        entropy.append(-(logp.exp() * logp).sum(1, keepdim=True))
+        if logit is not None:
+            beyond.append(torch.sigmoid(logit).unsqueeze(1))
+    return (torch.cat(beyond) if beyond else None), torch.cat(entropy)
