@@ -21,6 +21,7 @@ import numpy as np
 from mono_map.data.kitti import open_sequence
 from mono_map.depth.bins import DepthBins
 from mono_map.depth.multiview import MultiviewConfig, MultiviewPosterior
+from mono_map.eval.sparsification import sparsification
 from mono_map.frames import parse_frames
 from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq
 from mono_map.mapping.inputs import load_predictor, run_predictor
@@ -31,11 +32,17 @@ def metrics(d: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
     return float(np.mean(np.abs(d - gt) / gt)), float(np.mean(r < 1.25))
 
 
-def summary(per_frame: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float, float]:
-    """Pooled AbsRel and δ<1.25 over every pixel, and AbsRel as eval-depth reports it (the mean of frames)."""
-    d, g = (np.concatenate(x) for x in zip(*per_frame))
+def summary(per_frame: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[float, float, float, dict]:
+    """Pooled AbsRel and δ<1.25 over every pixel, AbsRel as eval-depth reports it (the mean of frames) and the
+    sparsification AUCs of the entropy (ARE %, RMSE m, 1−δ1 %; pooled pixels, as eval-depth)."""
+    d, g, e = (np.concatenate(x) for x in zip(*per_frame))
     a, b = metrics(d, g)
-    return a, b, float(np.mean([metrics(x, y)[0] for x, y in per_frame if len(y)]))
+    auc = sparsification(g, d, e)["auc"]
+    return a, b, float(np.mean([metrics(x, y)[0] for x, y, _ in per_frame if len(y)])), auc
+
+
+def auc_cells(auc: dict) -> str:
+    return f"{100 * auc['are']:.2f} / {auc['rmse']:.2f} / {100 * auc['1-d1']:.2f}"
 
 
 def main(argv=None) -> int:
@@ -81,25 +88,25 @@ def main(argv=None) -> int:
         pred = run_predictor(predictor, seq, i, seq.image(i), with_probs=True, probs_step=s)
         g = gt[::s, ::s]
         ok = (g >= bins.min_depth) & (g <= bins.max_depth)
-        acc["prior"].append((pred.depth[::s, ::s][ok], g[ok]))
+        acc["prior"].append((pred.depth[::s, ::s][ok], g[ok], pred.entropy[::s, ::s][ok]))
         for k, r in enumerate(refiners):
             t = time.perf_counter()
             q = r.refine(seq, i, pred)
             secs[k] += time.perf_counter() - t
-            acc[k].append((q.depth[::s, ::s][ok], g[ok]))
+            acc[k].append((q.depth[::s, ::s][ok], g[ok], q.entropy[::s, ::s][ok]))
             informative[k].append(r.last_informative)
         print(f"frame {i}", file=sys.stderr, flush=True)
     print(f"{args.seq}, frames {frames[0]}-{frames[-1]} ({len(frames)}), model {args.model or 'shipped'}, "
           f"pixels every {s}")
-    print("| depth | AbsRel | δ<1.25 | AbsRel (mean of frames) | pixels changed | s/frame (loaded host) |\n"
-          "|---|---:|---:|---:|---:|---:|")
-    a, b, f = summary(acc["prior"])
-    print(f"| prior (network) | {a:.3f} | {b:.3f} | {f:.3f} | – | – |")
+    print("| depth | AbsRel | δ<1.25 | AbsRel (mean of frames) | AUC ARE % / RMSE m / 1−δ1 % (entropy) "
+          "| pixels changed | s/frame (loaded host) |\n|---|---:|---:|---:|---:|---:|---:|")
+    a, b, f, auc = summary(acc["prior"])
+    print(f"| prior (network) | {a:.3f} | {b:.3f} | {f:.3f} | {auc_cells(auc)} | – | – |")
     for k, cfg in enumerate(grid):
-        a, b, f = summary(acc[k])
+        a, b, f, auc = summary(acc[k])
         print(f"| posterior, {cfg.sources} sources ≥ {cfg.min_baseline:g} m, τ {cfg.temperature:g}, a {cfg.prior_power:g}, "
               f"window {cfg.window}, scale {cfg.scale}, max baseline {cfg.max_baseline:g} m{', + image_3' if cfg.stereo else ''} | {a:.3f} | "
-              f"{b:.3f} | {f:.3f} | {100 * np.mean(informative[k]):.0f} % | {secs[k] / len(frames):.2f} |")
+              f"{b:.3f} | {f:.3f} | {auc_cells(auc)} | {100 * np.mean(informative[k]):.0f} % | {secs[k] / len(frames):.2f} |")
     return 0
 
 
