@@ -241,11 +241,11 @@ def test_decoder_only_keeps_the_encoder_and_more_sources_run(tiny_root, tiny_ckp
 def test_adapt_cli_decoder_only_is_the_default_and_can_be_turned_off():
     import argparse
 
-    from mono_map.cli import depth as cli_depth
+    from mono_map.cli import adapt as cli_adapt
 
     root = argparse.ArgumentParser()
     sub = root.add_subparsers(dest="cmd")
-    cli_depth.register(sub)
+    cli_adapt.register(sub)
     assert root.parse_args(["adapt", "--seq", "s"]).decoder_only is True
     assert root.parse_args(["adapt", "--seq", "s", "--no-decoder-only"]).decoder_only is False
 

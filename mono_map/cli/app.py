@@ -17,7 +17,8 @@ from mono_map.errors import MonoMapError
 # Modules whose ``register(subparsers)`` adds subcommands, in help order.
 COMMAND_MODULES = (
     "mono_map.cli.data",           # synth, render-trainset
-    "mono_map.cli.depth",          # train, predict, eval-depth, adapt
+    "mono_map.cli.depth",          # train, predict, eval-depth
+    "mono_map.cli.adapt",          # adapt
     "mono_map.cli.build",          # build
     "mono_map.cli.eval",           # eval
     "mono_map.cli.view",           # view
