@@ -37,7 +37,6 @@ def depth_rows(seq, frames: list[int], models: list[tuple[str, object]], width: 
     for i in frames:
         img = seq.image(i)
         gt = seq.lidar_depth(i)
-        h, w = img.shape[:2]
         lidar = np.zeros_like(img)
         v, u = np.nonzero(gt > 0)
         lidar[v, u] = colourise(1.0 / gt[v, u], lo, hi, "magma")
@@ -47,17 +46,26 @@ def depth_rows(seq, frames: list[int], models: list[tuple[str, object]], width: 
             d = pred.predict(img).depth
             e = image_errors(gt, d)
             rows.append((colourise(1.0 / d, lo, hi, "magma"), f"{label}: AbsRel {e['abs_rel']:.3f}"))
-        scale = width / w
-        tiles = []
-        for im, text in rows:
-            im = cv2.resize(im, (width, round(h * scale)), interpolation=cv2.INTER_AREA).copy()
-            # a dark outline from thin strokes shifted by a pixel: one thick stroke advances wider and left a ghost
-            # of the last glyph after the white text
-            for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                cv2.putText(im, text, (8 + dx, 22 + dy), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
-            cv2.putText(im, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
-            tiles.append(im)
-        cols.append(np.concatenate(tiles, 0))
+        cols.append(np.concatenate([labelled_tile(im, text, width) for im, text in rows], 0))
+    return side_by_side(cols)
+
+
+def labelled_tile(im: np.ndarray, text: str, width: int) -> np.ndarray:
+    """``im`` resized to ``width`` pixels wide with ``text`` written in its top-left corner."""
+    import cv2
+
+    h, w = im.shape[:2]
+    im = cv2.resize(im, (width, round(h * width / w)), interpolation=cv2.INTER_AREA).copy()
+    # a dark outline from thin strokes shifted by a pixel: one thick stroke advances wider and left a ghost
+    # of the last glyph after the white text
+    for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        cv2.putText(im, text, (8 + dx, 22 + dy), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(im, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+    return im
+
+
+def side_by_side(cols: list[np.ndarray]) -> np.ndarray:
+    """Columns of equal height next to each other, 6 white pixels apart."""
     gap = np.full((cols[0].shape[0], 6, 3), 255, np.uint8)
     out = cols[0]
     for c in cols[1:]:
@@ -93,7 +101,6 @@ def change_rows(seq, frames: list[int], models: list[tuple[str, object]], gt_kin
             raise MonoMapError(f"--gt dense: sequence {seq.name} has no dense depth (synthetic only; --gt lidar)")
         gt = np.where((gt > 1e-3) & (gt <= 80.0), gt, 0.0)
         depths = [pred.predict(img).depth for _, pred in models]
-        h, w = img.shape[:2]
         tiles = []
         for (label, _), d in zip(models[1:], depths[1:]):
             ch = failure_changes(gt, depths[0], d)
@@ -104,18 +111,9 @@ def change_rows(seq, frames: list[int], models: list[tuple[str, object]], gt_kin
                 im = np.where(cv2.dilate((gt > 0).astype(np.uint8), np.ones((3, 3), np.uint8))[..., None] > 0,
                               cv2.dilate(im, np.ones((3, 3), np.uint8)), im)
             n_new = int(ch["new, too near"].sum() + ch["new, too far"].sum())
-            text = f"frame {i}, {label}: {n_new} new, {int(ch['fixed'].sum())} fixed"
-            im = cv2.resize(im, (width, round(h * width / w)), interpolation=cv2.INTER_AREA)
-            for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                cv2.putText(im, text, (8 + dx, 22 + dy), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
-            cv2.putText(im, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
-            tiles.append(im)
+            tiles.append(labelled_tile(im, f"frame {i}, {label}: {n_new} new, {int(ch['fixed'].sum())} fixed", width))
         cols.append(np.concatenate(tiles, 0))
-    gap = np.full((cols[0].shape[0], 6, 3), 255, np.uint8)
-    out = cols[0]
-    for c in cols[1:]:
-        out = np.concatenate([out, gap, c], 1)
-    return out
+    return side_by_side(cols)
 
 
 def main(argv: list[str] | None = None) -> int:
