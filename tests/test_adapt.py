@@ -328,6 +328,8 @@ def test_adapt_with_the_entropy_hold_keeps_the_base_entropy_and_is_named_by_it(t
     held = run(tiny_root, tiny_ckpt, tmp_path, 6, "sb", "ob", entropy_hold=1000.0, **kw)
     again = run(tiny_root, tiny_ckpt, tmp_path, 6, "sc", "oc", entropy_hold=1000.0, **kw)
     assert held.checkpoint.name == again.checkpoint.name != free.checkpoint.name
+    curve = held.metadata["adapted"]["curve"]
+    assert curve[-1]["entropy_hold"] >= 0 and "entropy_hold" not in free.metadata["adapted"]["curve"][-1]
     assert "entropy_hold" not in AdaptConfig().run_settings()
     assert AdaptConfig(entropy_hold=0.5).run_settings()["entropy_hold"] == 0.5
     base, _ = load_checkpoint(tiny_ckpt)

@@ -334,7 +334,9 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
                           "train_photometric": float(np.mean([r["photometric"] for r in recent])),
                           "used_pixels": float(np.mean([r["used"] for r in recent])),
                           **({"hinted_pixels": float(np.mean([r["hinted"] for r in recent])),
-                              "hint_loss": float(np.mean([r["hint"] for r in recent]))} if cfg.hints else {})})
+                              "hint_loss": float(np.mean([r["hint"] for r in recent]))} if cfg.hints else {}),
+                          **({"entropy_hold": float(np.mean([r["entropy_hold"] for r in recent]))}
+                             if cfg.entropy_hold else {})})
             if not heldout or err < best["error"]:
                 best = {"error": err, "step": done, "state": copy_state(model)}
             save_state(state_path, {"step": done, "model": model.state_dict(), "optimizer": adapter.optimizer.state_dict(),
