@@ -65,6 +65,13 @@ def test_entropy_one_hot_and_uniform():
     np.testing.assert_allclose(dist.entropy(uniform).numpy(), math.log(64), rtol=1e-6)
 
 
+def test_entropy_of_logits_is_the_entropy_of_their_softmax():
+    logits = torch.randn(2, 64, 3, 4, generator=torch.Generator().manual_seed(0)) * 3
+    np.testing.assert_allclose(dist.entropy_of_logits(logits).numpy(),
+                               dist.entropy(torch.softmax(logits, 1)).numpy(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(dist.entropy_of_logits(torch.zeros(1, 64, 1, 1)).numpy(), math.log(64), rtol=1e-6)
+
+
 def test_expected_depth_of_peaked_distribution_is_its_bin():
     logits = torch.full((2, 64, 4, 5), -50.0)
     logits[0, 20] = 50.0

@@ -145,11 +145,11 @@ class Adapter:
         """Mean of (H − H_base)² (nats²) over the pixels at stride 4 that show content and no sky: each pixel's
         entropy held to the base model's. The photometric loss moves the expected depth and says nothing about
         its uncertainty; this keeps the base's (supervised) ranking of the pixels by confidence."""
+        from mono_map.depth.distribution import entropy_of_logits
         from mono_map.depth.heads import split_beyond
 
         x, _ = split_beyond(self.head, low, self.bins, self.beyond)
-        logp = torch.log_softmax(x[:, :self.bins.num_bins], 1)
-        ent = -(logp.exp() * logp).sum(1, keepdim=True)
+        ent = entropy_of_logits(x[:, :self.bins.num_bins]).unsqueeze(1)
         base = self.base_entropy[targets]
         keep = self.content4.expand_as(base)
         if self.base_beyond is not None:
@@ -280,6 +280,7 @@ def base_statistics(model, images: np.ndarray, precision: str, chunk: int = 8
                     ) -> tuple[torch.Tensor | None, torch.Tensor]:
     """The base model's p(no surface within range) (None for a model without it) and the entropy of its bin
     distribution (nats) at stride 4, each (N,1,H/4,W/4)."""
+    from mono_map.depth.distribution import entropy_of_logits
     from mono_map.depth.heads import split_beyond
 
     model.eval()
@@ -292,8 +293,7 @@ def base_statistics(model, images: np.ndarray, precision: str, chunk: int = 8
         else:
             low = model(x, upsample=False)
         bins, logit = split_beyond(model.head, low, model.cfg.bins, model.cfg.beyond)
-        logp = torch.log_softmax(bins[:, :model.cfg.bins.num_bins], 1)
-        entropy.append(-(logp.exp() * logp).sum(1, keepdim=True))
+        entropy.append(entropy_of_logits(bins[:, :model.cfg.bins.num_bins]).unsqueeze(1))
         if logit is not None:
             beyond.append(torch.sigmoid(logit).unsqueeze(1))
     return (torch.cat(beyond) if beyond else None), torch.cat(entropy)

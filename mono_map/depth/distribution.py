@@ -50,6 +50,13 @@ def entropy(probs: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     return -(probs * torch.log(probs.clamp_min(eps))).sum(1)
 
 
+def entropy_of_logits(logits: torch.Tensor) -> torch.Tensor:
+    """(B,H,W) entropy in nats of the softmax over the K score maps (B,K,H,W), from their log-softmax (no clamp:
+    exact, and its gradient reaches every score)."""
+    logp = torch.log_softmax(logits, 1)
+    return -(logp.exp() * logp).sum(1)
+
+
 def top_modes(probs: torch.Tensor, bins: DepthBins, m: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``m`` most probable local maxima along the bin axis, as depth hypotheses.
 
