@@ -284,7 +284,9 @@ def adapt(base: str | None, data_root, seq_name: str, frames=None, cfg: AdaptCon
         + (" and each frame's right camera (image_3)" if stereo else " (no image_3: --stereo off or not there)"))
     targets = sorted(sources)
     heldout = held_out(targets)
-    base_beyond, base_entropy = base_statistics(model, data.images[:len(indices)], cfg.precision)
+    base_beyond, base_entropy = None, None
+    if model.cfg.beyond or cfg.entropy_hold > 0:   # one pass of the base model over the frames, only if it is used
+        base_beyond, base_entropy = base_statistics(model, data.images[:len(indices)], cfg.precision)
     replay = load_replay(replay_seq, H, W, cfg.replay_frames) if replay_seq is not None else None
     if not cfg.train_encoder:
         for p in model.encoder.parameters():
