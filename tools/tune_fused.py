@@ -18,12 +18,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import itertools
+import json
 import sys
 from pathlib import Path
 
 
 from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq  # noqa: E402
 from mono_map.config import OctoMapConfig  # noqa: E402
+from mono_map.errors import MonoMapError  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
 from mono_map.eval.map_metrics import compare_leaves, surface_precision  # noqa: E402
 from mono_map.frames import parse_frames  # noqa: E402
@@ -66,6 +68,9 @@ def main(argv=None) -> int:
     add_model(p, oracle=True)
     p.add_argument("--oracle-sigma", type=float, default=None)
     p.add_argument("--oracle-edge-sigma", type=float, default=None)
+    p.add_argument("--oracle-shared-sigma", type=float, default=None,
+                   help="the oracle's error shared by the views (a smooth field fixed in the world; log-depth)")
+    p.add_argument("--oracle-shared-wavelength", type=float, default=None, help="its wavelength (m, default 10)")
     for name in GRID:
         p.add_argument("--" + name.replace("_", "-"), default=str(getattr(d, name)), help="comma list")
     p.add_argument("--ray-step", type=int, default=None,
@@ -73,17 +78,39 @@ def main(argv=None) -> int:
     p.add_argument("--eps", default=None,
                    help="comma list: the free half's eps (rays stop where P(surface beyond) < eps; default: "
                         "DistributionConfig's)")
-    p.add_argument("--no-baselines", action="store_true", help="no keep 0.8 / distribution / depth-gt rows")
+    p.add_argument("--no-baselines", action="store_true", help="no keep / distribution / depth-gt rows")
+    p.add_argument("--keeps", default="0.8", help="comma list: the keep maps among the baselines (default 0.8)")
+    p.add_argument("--json", default=None, help="also write the rows here (a JSON list of {map, metrics})")
     p.add_argument("--keep-multiview", action="store_true",
                    help="also a keep 0.8 map of the multi-view posterior (depth/multiview.py, its defaults)")
     p.add_argument("--allow-00", action="store_true", help="measure (not tune) on 00: one setting only")
     args = p.parse_args(argv)
     values = [[type(getattr(d, n))(float(v)) for v in getattr(args, n).split(",")] for n in GRID]
     grid = [FusedConfig(**dict(zip(GRID, combo))) for combo in itertools.product(*values)]
+    try:
+        keeps = [float(v) for v in args.keeps.split(",")]
+    except ValueError:
+        keeps = []
+    if not keeps or not all(0 < k <= 1 for k in keeps):
+        raise SystemExit(f"--keeps: a comma list of fractions in (0, 1], got {args.keeps!r}")
     if args.seq == "00" and (not args.allow_00 or len(grid) > 1 or (args.eps or "").count(",")):
         raise SystemExit("tune on a training town, never on 00 (--allow-00 measures one setting)")
     if args.oracle_sigma is not None and (args.model != "oracle" or not 0 < args.oracle_sigma < 1):
         raise SystemExit("--oracle-sigma: needs --model oracle and a noise in (0, 1)")
+    for name in ("edge_sigma", "shared_sigma", "shared_wavelength"):
+        if getattr(args, "oracle_" + name) is not None and args.model != "oracle":
+            raise SystemExit(f"--oracle-{name.replace('_', '-')}: needs --model oracle")
+    if args.model == "oracle":
+        kw = {} if args.oracle_sigma is None else {"sigma": args.oracle_sigma}
+        for name in ("edge_sigma", "shared_sigma", "shared_wavelength"):
+            if getattr(args, "oracle_" + name) is not None:
+                kw[name] = getattr(args, "oracle_" + name)
+        try:
+            predictor = NoisyGroundTruthPredictor(**kw)
+        except MonoMapError as e:
+            raise SystemExit(str(e))
+    else:
+        predictor = load_predictor(None if args.model == "shipped" else args.model)
     seq = open_sequence(args.data_root, args.seq)
     frames = parse_frames(args.frames).resolve(len(seq))
     cfg = OctoMapConfig()
@@ -92,13 +119,6 @@ def main(argv=None) -> int:
     ref = tree_leaves(build_map(seq, MapJob.spec("lidar-fov", frames, octomap=cfg), show_progress=False).tree)
     gt_tree = build_map(seq, MapJob.spec("depth-gt", frames, octomap=cfg), show_progress=False).tree if synthetic else None
     surf = tree_leaves(gt_tree) if synthetic else None
-    if args.model == "oracle":
-        kw = {} if args.oracle_sigma is None else {"sigma": args.oracle_sigma}
-        if args.oracle_edge_sigma is not None:
-            kw["edge_sigma"] = args.oracle_edge_sigma
-        predictor = NoisyGroundTruthPredictor(**kw)
-    else:
-        predictor = load_predictor(None if args.model == "shipped" else args.model)
     names, maps = [], []
     dd = DistributionConfig()
     try:
@@ -107,8 +127,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"--eps: a comma list of numbers, got {args.eps!r}")
     dists = [DistributionConfig(ray_step=dd.ray_step if args.ray_step is None else args.ray_step, eps=e) for e in epss]
     if not args.no_baselines:
-        names += ["mono keep 0.8", "mono, distribution"]
-        maps += [dict(keep=0.8), dict(integrate="distribution")]
+        names += [f"mono keep {k:g}" for k in keeps] + ["mono, distribution"]
+        maps += [dict(keep=k) for k in keeps] + [dict(integrate="distribution")]
     if args.keep_multiview:
         names.append("mono keep 0.8, multiview posterior")
         maps.append(dict(keep=0.8, multiview=MultiviewConfig()))
@@ -123,16 +143,26 @@ def main(argv=None) -> int:
     run_builders(seq, builders, frames)
     lines = ["| map | acc. | cov. | occ. P / R / F1 | surface prec. | occupied cells | reference's occupied cells freed | "
              "memory (MB) |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    rows = []
     if gt_tree is not None and not args.no_baselines:
-        lines.append(row("depth-gt", score(gt_tree, ref, surf)))
+        rows.append({"map": "depth-gt", **score(gt_tree, ref, surf)})
+        lines.append(row("depth-gt", rows[-1]))
         print(lines[-1], flush=True)
     for name in names:
         b = builders.pop(0)
         fps = len(frames) / sum(f["frame_s"] for f in b.per_frame)
-        lines.append(row(name, score(b.result(frames).tree, ref, surf)) + f" {fps:.1f} fr/s map work |")
+        rows.append({"map": name, **score(b.result(frames).tree, ref, surf), "map_work_fps": fps})
+        lines.append(row(name, rows[-1]) + f" {fps:.1f} fr/s map work |")
         print(lines[-1], flush=True)
         del b
     print("\n".join(lines))
+    if args.json:
+        setting = {"seq": args.seq, "frames": [int(frames[0]), int(frames[-1]), len(frames)],
+                   "model": args.model or "shipped", "oracle_sigma": getattr(predictor, "sigma", None),
+                   "oracle_edge_sigma": getattr(predictor, "edge_sigma", None),
+                   "oracle_shared_sigma": getattr(predictor, "shared_sigma", None),
+                   "oracle_shared_wavelength": getattr(predictor, "shared_wavelength", None)}
+        Path(args.json).write_text(json.dumps({"setting": setting, "rows": rows}, indent=1))
     return 0
 
 

@@ -10,6 +10,12 @@ edge in the first bin, mass beyond the last edge as ``p_beyond``, the bin probab
 conditional on a surface within range as every DepthPrediction's), so both ``--integrate keep``
 and ``--integrate distribution`` run on it. It is NOT the learned model; results with it say
 nothing about the model's quality.
+
+``shared_sigma`` adds an error the views *share*, as a network's bias is shared: a smooth random field fixed
+in the world (a sum of random plane waves of wavelength ~``shared_wavelength`` metres, unit variance), scaled
+by ``shared_sigma`` and added to the log-depth of every pixel whose true surface point lies there — the same
+surface point gets the same error in every frame, so averaging views cannot remove it. The claimed σ is then
+√(σ² + shared_sigma²) (each view's error, honestly reported).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import numpy as np
 from mono_map.depth.bins import DepthBins
 from mono_map.depth.inference import DepthPrediction, check_probs_step
 from mono_map.errors import MonoMapError
+from mono_map.mapping.points import pixels_to_world
 
 
 def lognormal_bin_probs(depth: np.ndarray, sigma: np.ndarray, bins: DepthBins,
@@ -54,7 +61,15 @@ class NoisyGroundTruthPredictor:
     """
 
     def __init__(self, sigma: float = 0.03, edge_sigma: float = 0.5, edge_jump: float = 0.1,
-                 edge_width: int = 3, seed: int = 0, bins: DepthBins | None = None):
+                 edge_width: int = 3, seed: int = 0, bins: DepthBins | None = None,
+                 shared_sigma: float = 0.0, shared_wavelength: float = 10.0):
+        for name, v in (("sigma", sigma), ("edge_sigma", edge_sigma), ("shared_sigma", shared_sigma)):
+            if not (np.isfinite(v) and 0 <= v < 1):
+                raise MonoMapError(f"oracle {name}: a log-depth noise in [0, 1), got {v}")
+        if not (np.isfinite(shared_wavelength) and shared_wavelength > 0):
+            raise MonoMapError(f"oracle shared_wavelength: metres > 0, got {shared_wavelength}")
+        self.shared_sigma = float(shared_sigma)
+        self.shared_wavelength = float(shared_wavelength)
         self.sigma = float(sigma)
         self.edge_sigma = float(edge_sigma)
         self.edge_jump = float(edge_jump)
@@ -83,6 +98,30 @@ class NoisyGroundTruthPredictor:
             grow = g
         return np.where(grow, self.sigma + self.edge_sigma, self.sigma).astype(np.float32)
 
+    def shared_field(self, points_world: np.ndarray) -> np.ndarray:
+        """The shared log-depth error (N,) float64 at world points (N, 3) metres: ``shared_sigma`` × a unit-variance
+        smooth field, √(2/M)·Σ cos(k_m·x + φ_m) over M = 64 plane waves with random directions, wavelengths
+        ``shared_wavelength`` × [0.5, 1.5] and phases (fixed by ``seed``)."""
+        m = 64
+        rng = np.random.default_rng((self.seed, 4242))
+        d = rng.standard_normal((m, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        k = d * (2 * np.pi / (self.shared_wavelength * rng.uniform(0.5, 1.5, (m, 1))))
+        phase = rng.uniform(0, 2 * np.pi, m)
+        out = np.zeros(len(points_world))
+        for a in range(0, len(points_world), 65536):      # blocks: (N × M) temporaries stay small
+            x = np.asarray(points_world[a:a + 65536], dtype=np.float64)
+            out[a:a + 65536] = np.cos(x @ k.T + phase).sum(axis=1)
+        return self.shared_sigma * np.sqrt(2.0 / m) * out
+
+    def shared_error(self, seq, i: int, gt: np.ndarray) -> np.ndarray:
+        """H×W float32 shared log-depth error of frame ``i``'s true surface points (0 where gt ≤ 0)."""
+        out = np.zeros(gt.shape, dtype=np.float32)
+        mask = gt > 0
+        out[mask] = self.shared_field(pixels_to_world(np.asarray(gt, np.float32), mask, seq.calib.K2,
+                                                      seq.T_world_cam2(i)))
+        return out
+
     def predict_frame(self, seq, i: int, image: np.ndarray | None = None, with_probs: bool = False,
                       probs_step: int = 1) -> DepthPrediction:
         """The noisy depth of frame ``i`` (+ with_probs: its bin probabilities at the pixels
@@ -94,6 +133,9 @@ class NoisyGroundTruthPredictor:
         sig = self.sigma_map(gt)
         rng = np.random.default_rng((self.seed, int(i)))
         noise = rng.standard_normal(gt.shape).astype(np.float32) * sig
+        if self.shared_sigma > 0:
+            noise += self.shared_error(seq, i, gt)
+            sig = np.sqrt(sig ** 2 + np.float32(self.shared_sigma) ** 2).astype(np.float32)
         depth = np.where(gt > 0, gt * np.exp(noise), np.float32(0.0)).astype(np.float32)
         entropy = (0.5 * np.log(2 * np.pi * np.e * sig.astype(np.float64) ** 2)).astype(np.float32)
         entropy[gt <= 0] = np.inf
