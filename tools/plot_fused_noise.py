@@ -7,7 +7,8 @@ Each RUN.json is ``tools/tune_fused.py --json`` of one oracle setting (``--model
 [--oracle-shared-sigma B]``): its maps' occupied F1 are plotted at the oracle's depth error, the expected
 AbsRel of a log-normal error of σ_total = √(S² + B²), E|exp(σ_total·Z) − 1| (edge noise off). Runs with
 B > 0 (an error the views share) and B = 0 (independent per pixel) are two families of lines. ``--network
-RUN.json:ABSREL`` adds a network's run at its measured AbsRel (markers, one per map). Prints the table.
+RUN.json:ABSREL[:FUSED_ABSREL]`` adds a network's run at its measured AbsRel (stars, one per map; the fused map
+at FUSED_ABSREL when given: the multi-view posterior's, which is what it fuses). Prints the table.
 """
 
 from __future__ import annotations
@@ -42,17 +43,20 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out")
     p.add_argument("runs", nargs="+")
-    p.add_argument("--network", action="append", default=[], help="RUN.json:ABSREL (repeatable)")
+    p.add_argument("--network", action="append", default=[], help="RUN.json:ABSREL[:FUSED_ABSREL] (repeatable)")
     args = p.parse_args(argv)
     if not args.out.endswith(".png"):
         raise SystemExit(f"{args.out}: the picture must be a .png")
     nets = []
     for item in args.network:
-        path, _, absrel = item.rpartition(":")
+        path, *values = item.split(":")
         try:
-            nets.append((load_run(path), float(absrel)))
+            absrel = [float(v) for v in values]
         except ValueError:
-            raise SystemExit(f"--network {item}: RUN.json:ABSREL with a number after the colon") from None
+            absrel = []
+        if len(absrel) not in (1, 2) or not all(0 < a < 10 for a in absrel):
+            raise SystemExit(f"--network {item}: RUN.json:ABSREL[:FUSED_ABSREL], AbsRel as fractions")
+        nets.append((load_run(path), absrel[0], absrel[-1]))
     families: dict[str, list] = {"independent": [], "shared": []}
     for path in args.runs:
         run = load_run(path)
@@ -64,17 +68,21 @@ def main(argv=None) -> int:
                              "(run the oracle with --oracle-edge-sigma 0)")
         b = s.get("oracle_shared_sigma") or 0.0
         total = float(np.hypot(s["oracle_sigma"], b))
-        families["shared" if b > 0 else "independent"].append((lognormal_absrel(total), run["f1"], s))
+        absrel = lognormal_absrel(total)
+        for family in (("independent", "shared") if absrel < 1e-3 else ("shared" if b > 0 else "independent",)):
+            families[family].append((absrel, run["f1"], s))      # near-exact depth starts both families
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.5, 4.6))
+    fig, ax = plt.subplots(figsize=(8, 6))
     print("| error | AbsRel | " + " | ".join(f"{m} F1 %" for m in MAPS) + " |")
     print("|---|---:|" + "---:|" * len(MAPS))
     for family, dash in (("independent", "-"), ("shared", "--")):
         pts = sorted(families[family], key=lambda t: t[0])
         for absrel, f1, s in pts:
+            if family == "shared" and not s.get("oracle_shared_sigma"):
+                continue                                          # printed once, with the independent runs
             name = (f"shared {s['oracle_shared_sigma']:g} (λ {s['oracle_shared_wavelength']:g} m) + independent "
                     f"{s['oracle_sigma']:g}" if family == "shared" else f"independent {s['oracle_sigma']:g}")
             print(f"| {name} | {absrel:.4f} | " + " | ".join(
@@ -89,21 +97,25 @@ def main(argv=None) -> int:
     if gts:
         ax.axhline(100 * np.mean(gts), color="black", lw=0.8, label="depth-gt (exact depth, every pixel)")
     ax.axhline(50, color="grey", lw=0.8, ls=":", label="issue 32's target for the fused map (on 00)")
-    for run, absrel in nets:
+    for run, absrel, fused_absrel in nets:
         for m in MAPS[:-1]:
             if m in run["f1"]:
                 c, mk = STYLE[m]
-                ax.plot(100 * absrel, 100 * run["f1"][m], marker="*", color=c, ms=13, mec="k", ls="")
-        print(f"| network {run['setting']['model']} | {absrel:.4f} | " + " | ".join(
+                ax.plot(100 * (fused_absrel if m == "fused" else absrel), 100 * run["f1"][m], marker="*", color=c,
+                        ms=13, mec="k", ls="")
+        at = f"{absrel:.4f}" + (f" (fused: {fused_absrel:.4f})" if fused_absrel != absrel else "")
+        print(f"| network {Path(run['setting']['model']).name} | {at} | " + " | ".join(
             f"{100 * run['f1'][m]:.1f}" if m in run["f1"] else "–" for m in MAPS) + " |")
     if nets:
-        ax.plot([], [], marker="*", color="grey", ms=11, mec="k", ls="", label="the shipped network (★)")
-    ax.set_xscale("symlog", linthresh=0.5)
+        ax.plot([], [], marker="*", color="grey", ms=11, mec="k", ls="", label="a network (★; its measured AbsRel)")
+    ax.set_xscale("log")
+    where = {(r["setting"]["seq"], tuple(r["setting"]["frames"])) for r in [load_run(x) for x in args.runs]}
+    ax.set_title("; ".join(f"sequence {q}, frames {f[0]}–{f[1]} ({f[2]})" for q, f in sorted(where)), fontsize=9)
     ax.set_xlabel("depth error fed to the map: AbsRel (%)")
     ax.set_ylabel("occupied F1 against LiDAR-FOV (%)")
     ax.set_ylim(0, 75)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper right")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     fig.tight_layout()
     fig.savefig(args.out, dpi=110)
     print(args.out)
