@@ -41,6 +41,7 @@ def test_tune_fused_json_rows_and_the_noise_plot(tiny_root, tmp_path, capsys):
     (["--keeps", "0,1"], "--keeps"),
     (["--oracle-shared-sigma", "0.1"], "--oracle-shared-sigma: needs --model oracle"),
     (["--model", "oracle", "--oracle-shared-sigma", "2"], "oracle shared_sigma"),
+    (["--model", "oracle", "--json", "rows.txt"], "--json: rows.txt: the file name must end in .json"),
 ])
 def test_tune_fused_bad_options_are_one_line(argv, message):
     tune = load_tool("tune_fused")
@@ -54,7 +55,7 @@ def test_plot_fused_noise_bad_inputs(tmp_path):
     bad.write_text("{}")
     with pytest.raises(SystemExit, match="bad.json: not a tools/tune_fused.py --json file"):
         plot.main([str(tmp_path / "x.png"), str(bad)])
-    with pytest.raises(SystemExit, match="must be a .png"):
+    with pytest.raises(SystemExit, match="must end in .png"):
         plot.main([str(tmp_path / "x.jpg"), str(bad)])
     edge = tmp_path / "edge.json"
     edge.write_text(json.dumps({"setting": {"oracle_sigma": 0.03, "oracle_edge_sigma": 0.5}, "rows": []}))

@@ -21,6 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from mono_map.errors import MonoMapError
+from mono_map.io import atomic_path, check_output_file
+
 MAPS = ("fused", "mono keep 1", "mono keep 0.8", "depth-gt")
 STYLE = {"fused": ("tab:red", "o"), "mono keep 1": ("tab:blue", "s"), "mono keep 0.8": ("tab:cyan", "^"),
          "depth-gt": ("black", "")}
@@ -45,8 +48,10 @@ def main(argv=None) -> int:
     p.add_argument("runs", nargs="+")
     p.add_argument("--network", action="append", default=[], help="RUN.json:ABSREL[:FUSED_ABSREL] (repeatable)")
     args = p.parse_args(argv)
-    if not args.out.endswith(".png"):
-        raise SystemExit(f"{args.out}: the picture must be a .png")
+    try:
+        check_output_file(args.out, "OUT", ".png")
+    except MonoMapError as e:
+        raise SystemExit(str(e))
     nets = []
     for item in args.network:
         path, *values = item.split(":")
@@ -117,7 +122,8 @@ def main(argv=None) -> int:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     fig.tight_layout()
-    fig.savefig(args.out, dpi=110)
+    with atomic_path(args.out) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     print(args.out)
     return 0
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import itertools
-import json
 import sys
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from pathlib import Path
 from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq  # noqa: E402
 from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.errors import MonoMapError  # noqa: E402
+from mono_map.io import check_output_file, write_json_atomic  # noqa: E402
 from mono_map.data.kitti import open_sequence  # noqa: E402
 from mono_map.eval.map_metrics import compare_leaves, surface_precision  # noqa: E402
 from mono_map.frames import parse_frames  # noqa: E402
@@ -100,6 +100,12 @@ def main(argv=None) -> int:
     for name in ("edge_sigma", "shared_sigma", "shared_wavelength"):
         if getattr(args, "oracle_" + name) is not None and args.model != "oracle":
             raise SystemExit(f"--oracle-{name.replace('_', '-')}: needs --model oracle")
+    if args.json:
+        try:
+            check_output_file(args.json, "--json", ".json")
+        except MonoMapError as e:
+            raise SystemExit(str(e))
+    predictor = None
     if args.model == "oracle":
         kw = {} if args.oracle_sigma is None else {"sigma": args.oracle_sigma}
         for name in ("edge_sigma", "shared_sigma", "shared_wavelength"):
@@ -109,10 +115,10 @@ def main(argv=None) -> int:
             predictor = NoisyGroundTruthPredictor(**kw)
         except MonoMapError as e:
             raise SystemExit(str(e))
-    else:
-        predictor = load_predictor(None if args.model == "shipped" else args.model)
     seq = open_sequence(args.data_root, args.seq)
     frames = parse_frames(args.frames).resolve(len(seq))
+    if predictor is None:
+        predictor = load_predictor(None if args.model == "shipped" else args.model)
     cfg = OctoMapConfig()
     synthetic = seq.depth(frames[0]) is not None
     print(f"sequence {args.seq}, frames {frames[0]}-{frames[-1]}, model {args.model or 'shipped'}", flush=True)
@@ -162,9 +168,12 @@ def main(argv=None) -> int:
                    "oracle_edge_sigma": getattr(predictor, "edge_sigma", None),
                    "oracle_shared_sigma": getattr(predictor, "shared_sigma", None),
                    "oracle_shared_wavelength": getattr(predictor, "shared_wavelength", None)}
-        Path(args.json).write_text(json.dumps({"setting": setting, "rows": rows}, indent=1))
+        write_json_atomic(args.json, {"setting": setting, "rows": rows})
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except MonoMapError as exc:           # bad data: one line
+        sys.exit(f"tune_fused: error: {exc}")
