@@ -62,3 +62,19 @@ def test_plot_fused_noise_bad_inputs(tmp_path):
     with pytest.raises(SystemExit, match="edge noise"):
         plot.main([str(tmp_path / "x.png"), str(edge)])
     assert not (tmp_path / "x.png").exists()
+
+
+def test_shared_error_tool_tells_a_shared_error_from_noise(tiny_root, capsys):
+    tool = load_tool("shared_error")
+    common = ["--seq", "tiny", "--frames", "0:3", "--gaps", "1", "--data-root", str(tiny_root), "--model", "oracle",
+              "--oracle-edge-sigma", "0"]
+    assert tool.main(common + ["--oracle-sigma", "0.0001", "--oracle-shared-sigma", "0.05"]) == 0
+    shared = capsys.readouterr().out.splitlines()[-1].split("|")
+    assert float(shared[4]) > 0.99
+    assert tool.main(common + ["--oracle-sigma", "0.05"]) == 0
+    independent = capsys.readouterr().out.splitlines()[-1].split("|")
+    assert abs(float(independent[4])) < 0.1 and int(independent[2].replace(",", "")) > 500
+    with pytest.raises(SystemExit, match="--gaps"):
+        tool.main(common + ["--gaps", "0"])
+    with pytest.raises(SystemExit, match="needs --model oracle"):
+        tool.main(["--oracle-shared-sigma", "0.1"])

@@ -7,9 +7,8 @@ import pytest
 
 from mono_map.data.kitti import open_sequence
 from mono_map.errors import MonoMapError
-from mono_map.geometry import pose_inverse, project_points, transform_points
+from mono_map.eval.shared_error import common_surface_pixels, log_errors, shared_share
 from mono_map.mapping.oracle import NoisyGroundTruthPredictor
-from mono_map.mapping.points import pixels_to_world
 
 
 def test_shared_field_is_smooth_with_the_asked_scale():
@@ -23,24 +22,10 @@ def test_shared_field_is_smooth_with_the_asked_scale():
 
 
 def log_errors_at_common_points(seq, oracle, i, j):
-    """Log-depth errors of frame i's pixels and of the frame-j pixels seeing the same surface point (its
-    projection into j within 0.1 px of a pixel centre, its depth there within 1 cm)."""
-    gi, gj = seq.depth(i), seq.depth(j)
-    with np.errstate(divide="ignore"):          # log 0 where there is no surface: never read
-        ei = np.log(oracle.predict_frame(seq, i).depth / np.where(gi > 0, gi, 1))
-        ej = np.log(oracle.predict_frame(seq, j).depth / np.where(gj > 0, gj, 1))
-    mask = gi > 0
-    pts = pixels_to_world(gi, mask, seq.calib.K2, seq.T_world_cam2(i))
-    uv, z = project_points(seq.calib.K2, transform_points(pose_inverse(seq.T_world_cam2(j)), pts))
-    ok = np.isfinite(uv).all(axis=1)
-    r = np.rint(uv[ok]).astype(int)
-    near = (np.abs(uv[ok] - r) < 0.1).all(axis=1)
-    h, w = gj.shape
-    inside = near & (r[:, 0] >= 0) & (r[:, 0] < w) & (r[:, 1] >= 0) & (r[:, 1] < h)
-    idx = np.flatnonzero(ok)[inside]
-    r = r[inside]
-    same = np.abs(gj[r[:, 1], r[:, 0]] - z[idx]) < 0.01
-    return ei[mask][idx[same]], ej[r[same, 1], r[same, 0]]
+    """Log-depth errors of the oracle at the pixels of frames i and j that see one surface point."""
+    pi, pj = common_surface_pixels(seq, i, j)
+    return (log_errors(oracle.predict_frame(seq, i).depth, seq.depth(i), pi),
+            log_errors(oracle.predict_frame(seq, j).depth, seq.depth(j), pj))
 
 
 def test_shared_error_is_the_same_for_a_surface_point_in_every_view(tiny_root):
@@ -49,9 +34,26 @@ def test_shared_error_is_the_same_for_a_surface_point_in_every_view(tiny_root):
     a, b = log_errors_at_common_points(seq, shared, 0, 2)
     assert len(a) > 200 and a.std() > 0.03
     assert np.max(np.abs(a - b)) < 0.01                       # the views share it
+    assert shared_share(a, b)["correlation"] > 0.99
     independent = NoisyGroundTruthPredictor(sigma=0.1, edge_sigma=0.0)
     a, b = log_errors_at_common_points(seq, independent, 0, 2)
-    assert abs(np.corrcoef(a, b)[0, 1]) < 0.2 and np.mean(np.abs(a - b)) > 0.05   # these are not shared
+    s = shared_share(a, b)
+    assert abs(s["correlation"]) < 0.1 and s["rms_difference"] > 0.12 and 0.09 < s["rms"] < 0.11   # not shared
+
+
+def test_common_surface_pixels_see_one_point(tiny_root):
+    """The pixels paired by the ground truth are one surface point: back-projected, they coincide (to the depth
+    tolerance and the sub-pixel offset); occluded points are not paired."""
+    from mono_map.mapping.points import pixel_points_to_world
+
+    seq = open_sequence(tiny_root, "tiny")
+    pi, pj = common_surface_pixels(seq, 1, 3)
+    assert len(pi) > 500
+    xi = pixel_points_to_world(pi[:, 1], pi[:, 0], seq.depth(1)[pi[:, 0], pi[:, 1]], seq.calib.K2, seq.T_world_cam2(1))
+    xj = pixel_points_to_world(pj[:, 1], pj[:, 0], seq.depth(3)[pj[:, 0], pj[:, 1]], seq.calib.K2, seq.T_world_cam2(3))
+    assert np.percentile(np.linalg.norm(xi - xj, axis=1), 99) < 0.05
+    same = common_surface_pixels(seq, 2, 2)[0]
+    assert len(same) == np.count_nonzero(seq.depth(2) > 0)      # a frame with itself: every pixel
 
 
 def test_shared_error_is_in_the_claimed_spread(tiny_root):
