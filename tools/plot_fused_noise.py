@@ -1,14 +1,14 @@
 #!/usr/bin/env python3
 """Occupied F1 of the maps against the depth error they are fed (docs/fused.md, "How good the depth must be").
 
-    PYTHONPATH=. python tools/plot_fused_noise.py OUT.png RUN.json [RUN.json ...] [--network RUN.json:ABSREL]
+    PYTHONPATH=. python tools/plot_fused_noise.py OUT.png RUN.json [RUN.json ...] [--network RUN.json:ABSREL ...]
 
 Each RUN.json is ``tools/tune_fused.py --json`` of one oracle setting (``--model oracle --oracle-sigma S
 [--oracle-shared-sigma B]``): its maps' occupied F1 are plotted at the oracle's depth error, the expected
 AbsRel of a log-normal error of σ_total = √(S² + B²), E|exp(σ_total·Z) − 1| (edge noise off). Runs with
 B > 0 (an error the views share) and B = 0 (independent per pixel) are two families of lines. ``--network
-RUN.json:ABSREL[:FUSED_ABSREL]`` adds a network's run at its measured AbsRel (stars, one per map; the fused map
-at FUSED_ABSREL when given: the multi-view posterior's, which is what it fuses). Prints the table.
+RUN.json:ABSREL`` adds a network's run at its prediction's measured AbsRel (stars, one per map; the fused maps of
+the oracle and of the network alike go through the multi-view posterior). Prints the table.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out")
     p.add_argument("runs", nargs="+")
-    p.add_argument("--network", action="append", default=[], help="RUN.json:ABSREL[:FUSED_ABSREL] (repeatable)")
+    p.add_argument("--network", action="append", default=[], help="RUN.json:ABSREL (repeatable)")
     args = p.parse_args(argv)
     try:
         check_output_file(args.out, "OUT", ".png")
@@ -54,14 +54,14 @@ def main(argv=None) -> int:
         raise SystemExit(str(e))
     nets = []
     for item in args.network:
-        path, *values = item.split(":")
+        path, _, value = item.rpartition(":")
         try:
-            absrel = [float(v) for v in values]
+            absrel = float(value)
         except ValueError:
-            absrel = []
-        if len(absrel) not in (1, 2) or not all(0 < a < 10 for a in absrel):
-            raise SystemExit(f"--network {item}: RUN.json:ABSREL[:FUSED_ABSREL], AbsRel as fractions")
-        nets.append((load_run(path), absrel[0], absrel[-1]))
+            absrel = -1.0
+        if not path or not 0 < absrel < 10:
+            raise SystemExit(f"--network {item}: RUN.json:ABSREL, the AbsRel as a fraction")
+        nets.append((load_run(path), absrel))
     families: dict[str, list] = {"independent": [], "shared": []}
     for path in args.runs:
         run = load_run(path)
@@ -102,14 +102,12 @@ def main(argv=None) -> int:
     if gts:
         ax.axhline(100 * np.mean(gts), color="black", lw=0.8, label="depth-gt (exact depth, every pixel)")
     ax.axhline(50, color="grey", lw=0.8, ls=":", label="issue 32's target for the fused map (on 00)")
-    for run, absrel, fused_absrel in nets:
+    for run, absrel in nets:
         for m in MAPS[:-1]:
             if m in run["f1"]:
                 c, mk = STYLE[m]
-                ax.plot(100 * (fused_absrel if m == "fused" else absrel), 100 * run["f1"][m], marker="*", color=c,
-                        ms=13, mec="k", ls="")
-        at = f"{absrel:.4f}" + (f" (fused: {fused_absrel:.4f})" if fused_absrel != absrel else "")
-        print(f"| network {Path(run['setting']['model']).name} | {at} | " + " | ".join(
+                ax.plot(100 * absrel, 100 * run["f1"][m], marker="*", color=c, ms=13, mec="k", ls="")
+        print(f"| network {Path(run['setting']['model']).name} | {absrel:.4f} | " + " | ".join(
             f"{100 * run['f1'][m]:.1f}" if m in run["f1"] else "–" for m in MAPS) + " |")
     if nets:
         ax.plot([], [], marker="*", color="grey", ms=11, mec="k", ls="", label="a network (★; its measured AbsRel)")
