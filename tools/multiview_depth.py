@@ -41,6 +41,19 @@ def summary(per_frame: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple
     return a, b, float(np.mean([metrics(x, y)[0] for x, y, _ in per_frame if len(y)])), auc
 
 
+BANDS = ((1, 5), (5, 10), (10, 20), (20, 40), (40, 80))
+
+
+def absrel_by_band(per_frame: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> list[float]:
+    """Pooled AbsRel of the pixels whose true depth lies in each of BANDS (metres; NaN for an empty band)."""
+    d, g = (np.concatenate(x) for x in list(zip(*per_frame))[:2])
+    out = []
+    for lo, hi in BANDS:
+        m = (g >= lo) & (g < hi)
+        out.append(float(np.mean(np.abs(d[m] - g[m]) / g[m])) if m.any() else float("nan"))
+    return out
+
+
 def auc_cells(auc: dict) -> str:
     return f"{100 * auc['are']:.2f} / {auc['rmse']:.2f} / {100 * auc['1-d1']:.2f}"
 
@@ -102,11 +115,19 @@ def main(argv=None) -> int:
           "| pixels changed | s/frame (loaded host) |\n|---|---:|---:|---:|---:|---:|---:|")
     a, b, f, auc = summary(acc["prior"])
     print(f"| prior (network) | {a:.3f} | {b:.3f} | {f:.3f} | {auc_cells(auc)} | – | – |")
+    names = {}
     for k, cfg in enumerate(grid):
         a, b, f, auc = summary(acc[k])
-        print(f"| posterior, {cfg.sources} sources ≥ {cfg.min_baseline:g} m, τ {cfg.temperature:g}, a {cfg.prior_power:g}, "
-              f"window {cfg.window}, scale {cfg.scale}, max baseline {cfg.max_baseline:g} m{', + image_3' if cfg.stereo else ''} | {a:.3f} | "
+        names[k] = (f"posterior, {cfg.sources} sources ≥ {cfg.min_baseline:g} m, τ {cfg.temperature:g}, a {cfg.prior_power:g}, "
+                    f"window {cfg.window}, scale {cfg.scale}, max baseline {cfg.max_baseline:g} m{', + image_3' if cfg.stereo else ''}")
+        print(f"| {names[k]} | {a:.3f} | "
               f"{b:.3f} | {f:.3f} | {auc_cells(auc)} | {100 * np.mean(informative[k]):.0f} % | {secs[k] / len(frames):.2f} |")
+    print("\nAbsRel by true depth (pooled pixels; share of the pixels in the header)\n")
+    g_all = np.concatenate([g for _, g, _ in acc["prior"]])
+    print("| depth | " + " | ".join(f"{lo:g}–{hi:g} m ({100 * np.mean((g_all >= lo) & (g_all < hi)):.0f} %)"
+                                    for lo, hi in BANDS) + " |\n|---|" + "---:|" * len(BANDS))
+    for key, name in [("prior", "prior (network)")] + list(names.items()):
+        print(f"| {name} | " + " | ".join(f"{x:.3f}" for x in absrel_by_band(acc[key])) + " |")
     return 0
 
 
