@@ -79,12 +79,3 @@ def test_shared_error_tool_tells_a_shared_error_from_noise(tiny_root, capsys):
     with pytest.raises(SystemExit, match="needs --model oracle"):
         tool.main(["--oracle-shared-sigma", "0.1"])
 
-
-def test_multiview_depth_absrel_by_band():
-    tool = load_tool("multiview_depth")
-    g = np.array([2.0, 4.0, 7.0, 15.0, 30.0, 60.0, 90.0])
-    d = g * np.array([1.5, 1.5, 1.1, 0.8, 1.0, 1.2, 2.0])        # 90 m lies in no band
-    e = np.zeros_like(g)
-    out = tool.absrel_by_band([(d[:3], g[:3], e[:3]), (d[3:], g[3:], e[3:])])
-    assert out == pytest.approx([0.5, 0.1, 0.2, 0.0, 0.2])
-    assert np.isnan(tool.absrel_by_band([(d[:1], g[:1], e[:1])])[1])

@@ -21,6 +21,7 @@ import numpy as np
 from mono_map.data.kitti import open_sequence
 from mono_map.depth.bins import DepthBins
 from mono_map.depth.multiview import MultiviewConfig, MultiviewPosterior
+from mono_map.eval.depth_metrics import distance_bands
 from mono_map.eval.sparsification import sparsification
 from mono_map.frames import parse_frames
 from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq
@@ -39,19 +40,6 @@ def summary(per_frame: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple
     a, b = metrics(d, g)
     auc = sparsification(g, d, e)["auc"]
     return a, b, float(np.mean([metrics(x, y)[0] for x, y, _ in per_frame if len(y)])), auc
-
-
-BANDS = ((1, 5), (5, 10), (10, 20), (20, 40), (40, 80))
-
-
-def absrel_by_band(per_frame: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> list[float]:
-    """Pooled AbsRel of the pixels whose true depth lies in each of BANDS (metres; NaN for an empty band)."""
-    d, g = (np.concatenate(x) for x in list(zip(*per_frame))[:2])
-    out = []
-    for lo, hi in BANDS:
-        m = (g >= lo) & (g < hi)
-        out.append(float(np.mean(np.abs(d[m] - g[m]) / g[m])) if m.any() else float("nan"))
-    return out
 
 
 def auc_cells(auc: dict) -> str:
@@ -122,12 +110,13 @@ def main(argv=None) -> int:
                     f"window {cfg.window}, scale {cfg.scale}, max baseline {cfg.max_baseline:g} m{', + image_3' if cfg.stereo else ''}")
         print(f"| {names[k]} | {a:.3f} | "
               f"{b:.3f} | {f:.3f} | {auc_cells(auc)} | {100 * np.mean(informative[k]):.0f} % | {secs[k] / len(frames):.2f} |")
-    print("\nAbsRel by true depth (pooled pixels; share of the pixels in the header)\n")
-    g_all = np.concatenate([g for _, g, _ in acc["prior"]])
-    print("| depth | " + " | ".join(f"{lo:g}–{hi:g} m ({100 * np.mean((g_all >= lo) & (g_all < hi)):.0f} %)"
-                                    for lo, hi in BANDS) + " |\n|---|" + "---:|" * len(BANDS))
+    print("\nAbsRel by true depth (eval-depth's bands; pooled pixels; share of the pixels in the header)\n")
+    bands = {key: distance_bands(np.concatenate([g for _, g, _ in v]), np.concatenate([d for d, _, _ in v]))
+             for key, v in acc.items()}
+    print("| depth | " + " | ".join(f"{b['lo']:g}–{b['hi']:g} m ({100 * b['share']:.0f} %)" for b in bands["prior"])
+          + " |\n|---|" + "---:|" * len(bands["prior"]))
     for key, name in [("prior", "prior (network)")] + list(names.items()):
-        print(f"| {name} | " + " | ".join(f"{x:.3f}" for x in absrel_by_band(acc[key])) + " |")
+        print(f"| {name} | " + " | ".join("–" if b["abs_rel"] is None else f"{b['abs_rel']:.3f}" for b in bands[key]) + " |")
     return 0
 
 
