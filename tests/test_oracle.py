@@ -66,7 +66,7 @@ def test_shared_error_is_in_the_claimed_spread(tiny_root):
     assert p.probs is not None and np.isfinite(p.probs).all()
 
 
-@pytest.mark.parametrize("kw", [dict(shared_sigma=-0.1), dict(shared_sigma=1.5), dict(sigma=np.nan),
+@pytest.mark.parametrize("kw", [dict(shared_sigma=-0.1), dict(shared_sigma=1.5), dict(sigma=np.nan), dict(sigma=0.0),
                                 dict(shared_wavelength=0.0), dict(edge_sigma=2.0)])
 def test_bad_oracle_settings_are_one_line(kw):
     with pytest.raises(MonoMapError, match="oracle"):

@@ -18,7 +18,7 @@ import sys
 
 import numpy as np
 
-from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq
+from mono_map.cli.options import add_data_root, add_frames, add_model, add_oracle_noise, add_seq, oracle_predictor
 from mono_map.data.kitti import open_sequence
 from mono_map.depth.bins import DepthBins
 from mono_map.depth.multiview import MultiviewConfig, MultiviewPosterior
@@ -26,7 +26,6 @@ from mono_map.errors import MonoMapError
 from mono_map.eval.shared_error import common_surface_pixels, log_errors, shared_share
 from mono_map.frames import parse_frames
 from mono_map.mapping.inputs import load_predictor, run_predictor
-from mono_map.mapping.oracle import NoisyGroundTruthPredictor
 
 
 def main(argv=None) -> int:
@@ -36,9 +35,7 @@ def main(argv=None) -> int:
     add_data_root(p)
     add_model(p, oracle=True)
     p.add_argument("--gaps", default="1,3,10", help="comma list: frames between the two views")
-    p.add_argument("--oracle-sigma", type=float, default=None)
-    p.add_argument("--oracle-edge-sigma", type=float, default=None)
-    p.add_argument("--oracle-shared-sigma", type=float, default=None)
+    add_oracle_noise(p)
     p.add_argument("--posterior", action="store_true", help="the multi-view posterior's depth (its defaults)")
     args = p.parse_args(argv)
     try:
@@ -47,15 +44,16 @@ def main(argv=None) -> int:
         gaps = []
     if not gaps or gaps[0] < 1:
         raise SystemExit(f"--gaps: a comma list of positive frame counts, got {args.gaps!r}")
-    oracle_kw = {k: getattr(args, "oracle_" + k) for k in ("sigma", "edge_sigma", "shared_sigma")
-                 if getattr(args, "oracle_" + k) is not None}
-    if oracle_kw and args.model != "oracle":
-        raise SystemExit("--oracle-*: needs --model oracle")
+    try:
+        predictor = oracle_predictor(args)
+    except MonoMapError as e:
+        raise SystemExit(str(e))
     seq = open_sequence(args.data_root, args.seq)
     if seq.depth(0) is None:
         raise SystemExit(f"{args.seq}: no ground-truth depth (depth_2): synthetic sequences only")
     frames = parse_frames(args.frames).resolve(len(seq))
-    predictor = NoisyGroundTruthPredictor(**oracle_kw) if args.model == "oracle" else load_predictor(args.model)
+    if predictor is None:
+        predictor = load_predictor(args.model)
     refiner = MultiviewPosterior(MultiviewConfig(), getattr(predictor, "bins", None) or DepthBins()) \
         if args.posterior else None
     cache: dict[int, np.ndarray] = {}
@@ -80,7 +78,8 @@ def main(argv=None) -> int:
             del cache[k]
     what = ("the multi-view posterior of " if refiner else "") + (args.model or "the shipped model")
     print(f"{args.seq}, frames {frames[0]}-{frames[-1]} ({len(frames)}), {what}" +
-          (f" {oracle_kw}" if oracle_kw else ""))
+          (f" (σ {predictor.sigma:g}, edges {predictor.edge_sigma:g}, shared {predictor.shared_sigma:g})"
+           if args.model == "oracle" else ""))
     print("| views apart | pairs | rms log error | correlation (shared share) | rms difference |\n|---:|---:|---:|---:|---:|")
     for g in gaps:
         if not pairs[g][0]:

@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 
-from mono_map.cli.options import add_data_root, add_frames, add_model, add_seq  # noqa: E402
+from mono_map.cli.options import add_data_root, add_frames, add_model, add_oracle_noise, add_seq, oracle_predictor  # noqa: E402
 from mono_map.config import OctoMapConfig  # noqa: E402
 from mono_map.errors import MonoMapError  # noqa: E402
 from mono_map.io import check_output_file, write_json_atomic  # noqa: E402
@@ -36,7 +36,6 @@ from mono_map.depth.multiview import MultiviewConfig  # noqa: E402
 from mono_map.mapping.distribution import DistributionConfig  # noqa: E402
 from mono_map.mapping.fused import FusedConfig  # noqa: E402
 from mono_map.mapping.octree import tree_leaves  # noqa: E402
-from mono_map.mapping.oracle import NoisyGroundTruthPredictor  # noqa: E402
 
 GRID = tuple(f.name for f in dataclasses.fields(FusedConfig))      # every fused setting is a --NAME comma list
 
@@ -66,11 +65,7 @@ def main(argv=None) -> int:
     add_frames(p, default="0:60")
     add_data_root(p)
     add_model(p, oracle=True)
-    p.add_argument("--oracle-sigma", type=float, default=None)
-    p.add_argument("--oracle-edge-sigma", type=float, default=None)
-    p.add_argument("--oracle-shared-sigma", type=float, default=None,
-                   help="the oracle's error shared by the views (a smooth field fixed in the world; log-depth)")
-    p.add_argument("--oracle-shared-wavelength", type=float, default=None, help="its wavelength (m, default 10)")
+    add_oracle_noise(p)
     for name in GRID:
         p.add_argument("--" + name.replace("_", "-"), default=str(getattr(d, name)), help="comma list")
     p.add_argument("--ray-step", type=int, default=None,
@@ -95,26 +90,15 @@ def main(argv=None) -> int:
         raise SystemExit(f"--keeps: a comma list of fractions in (0, 1], got {args.keeps!r}")
     if args.seq == "00" and (not args.allow_00 or len(grid) > 1 or (args.eps or "").count(",")):
         raise SystemExit("tune on a training town, never on 00 (--allow-00 measures one setting)")
-    if args.oracle_sigma is not None and (args.model != "oracle" or not 0 < args.oracle_sigma < 1):
-        raise SystemExit("--oracle-sigma: needs --model oracle and a noise in (0, 1)")
-    for name in ("edge_sigma", "shared_sigma", "shared_wavelength"):
-        if getattr(args, "oracle_" + name) is not None and args.model != "oracle":
-            raise SystemExit(f"--oracle-{name.replace('_', '-')}: needs --model oracle")
     if args.json:
         try:
             check_output_file(args.json, "--json", ".json")
         except MonoMapError as e:
             raise SystemExit(str(e))
-    predictor = None
-    if args.model == "oracle":
-        kw = {} if args.oracle_sigma is None else {"sigma": args.oracle_sigma}
-        for name in ("edge_sigma", "shared_sigma", "shared_wavelength"):
-            if getattr(args, "oracle_" + name) is not None:
-                kw[name] = getattr(args, "oracle_" + name)
-        try:
-            predictor = NoisyGroundTruthPredictor(**kw)
-        except MonoMapError as e:
-            raise SystemExit(str(e))
+    try:
+        predictor = oracle_predictor(args)
+    except MonoMapError as e:
+        raise SystemExit(str(e))
     seq = open_sequence(args.data_root, args.seq)
     frames = parse_frames(args.frames).resolve(len(seq))
     if predictor is None:

@@ -1,5 +1,5 @@
-"""The options several commands and scripts share, declared once: sequence, frames, data root, model,
-output, torch threads and precision, the OctoMap settings.
+"""The options several commands and scripts share, declared once: sequence, frames, data root, model (and the
+oracle's noise), output, torch threads and precision, the OctoMap settings.
 
 Each ``add_*`` adds one option to an argparse parser (or argument group) with its one meaning and help;
 a command passes only what differs (``default``, ``required``, a sentence on what the option selects in
@@ -90,6 +90,36 @@ def check_flip(args) -> None:
     if getattr(args, "flip", False) and (args.model == "oracle" or getattr(args, "source", "mono") != "mono"):
         raise MonoMapError("--flip: mirrors a depth network's input; the oracle and the LiDAR / depth-gt sources "
                            "have none")
+
+
+ORACLE_NOISES = {
+    "sigma": "the oracle's log-depth noise, independent per pixel (default 0.03)",
+    "edge_sigma": "... and its extra noise at depth edges (default 0.5)",
+    "shared_sigma": "the oracle's error shared by the views: a smooth field fixed in the world (log-depth; default 0)",
+    "shared_wavelength": "... its wavelength (metres; default 10)",
+}
+
+
+def add_oracle_noise(p) -> None:
+    """``--oracle-sigma``, ``--oracle-edge-sigma``, ``--oracle-shared-sigma``, ``--oracle-shared-wavelength``: the
+    noise of ``--model oracle`` (:class:`mono_map.mapping.oracle.NoisyGroundTruthPredictor`'s settings)."""
+    for name, text in ORACLE_NOISES.items():
+        p.add_argument("--oracle-" + name.replace("_", "-"), type=float, default=None, help=text)
+
+
+def oracle_predictor(args):
+    """The NoisyGroundTruthPredictor of ``--model oracle`` with the ``--oracle-*`` options given (None for another
+    model); MonoMapError (one line) for such an option without ``--model oracle`` or a bad value."""
+    from mono_map.errors import MonoMapError
+    from mono_map.mapping.oracle import NoisyGroundTruthPredictor
+
+    given = {name: getattr(args, "oracle_" + name) for name in ORACLE_NOISES
+             if getattr(args, "oracle_" + name, None) is not None}
+    if args.model != "oracle":
+        if given:
+            raise MonoMapError(f"--oracle-{next(iter(given)).replace('_', '-')}: needs --model oracle")
+        return None
+    return NoisyGroundTruthPredictor(**given)
 
 
 def add_octomap(p: argparse.ArgumentParser) -> None:

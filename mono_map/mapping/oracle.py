@@ -63,7 +63,9 @@ class NoisyGroundTruthPredictor:
     def __init__(self, sigma: float = 0.03, edge_sigma: float = 0.5, edge_jump: float = 0.1,
                  edge_width: int = 3, seed: int = 0, bins: DepthBins | None = None,
                  shared_sigma: float = 0.0, shared_wavelength: float = 10.0):
-        for name, v in (("sigma", sigma), ("edge_sigma", edge_sigma), ("shared_sigma", shared_sigma)):
+        if not (np.isfinite(sigma) and 0 < sigma < 1):
+            raise MonoMapError(f"oracle sigma: a log-depth noise in (0, 1), got {sigma}")
+        for name, v in (("edge_sigma", edge_sigma), ("shared_sigma", shared_sigma)):
             if not (np.isfinite(v) and 0 <= v < 1):
                 raise MonoMapError(f"oracle {name}: a log-depth noise in [0, 1), got {v}")
         if not (np.isfinite(shared_wavelength) and shared_wavelength > 0):
