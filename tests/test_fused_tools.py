@@ -55,10 +55,15 @@ def test_plot_fused_noise_bad_inputs(tmp_path):
     bad.write_text("{}")
     with pytest.raises(SystemExit, match="bad.json: not a tools/tune_fused.py --json file"):
         plot.main([str(tmp_path / "x.png"), str(bad)])
+    unnamed = tmp_path / "unnamed.json"
+    unnamed.write_text(json.dumps({"setting": {"oracle_sigma": 0.03}, "rows": []}))
+    with pytest.raises(SystemExit, match="unnamed.json: not a tools/tune_fused.py --json file"):
+        plot.main([str(tmp_path / "x.png"), str(unnamed)])
     with pytest.raises(SystemExit, match="must end in .png"):
         plot.main([str(tmp_path / "x.jpg"), str(bad)])
     edge = tmp_path / "edge.json"
-    edge.write_text(json.dumps({"setting": {"oracle_sigma": 0.03, "oracle_edge_sigma": 0.5}, "rows": []}))
+    edge.write_text(json.dumps({"setting": {"seq": "06", "frames": [0, 9, 10], "oracle_sigma": 0.03,
+                                            "oracle_edge_sigma": 0.5}, "rows": []}))
     with pytest.raises(SystemExit, match="edge noise"):
         plot.main([str(tmp_path / "x.png"), str(edge)])
     assert not (tmp_path / "x.png").exists()

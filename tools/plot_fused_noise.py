@@ -37,6 +37,7 @@ def lognormal_absrel(sigma: float) -> float:
 def load_run(path: str) -> dict:
     try:
         run = json.loads(Path(path).read_text())
+        run["setting"]["seq"], run["setting"]["frames"][2]     # what every run names (a picture's title)
         return {"setting": run["setting"], "f1": {r["map"].strip(): r["f1"] for r in run["rows"]}}
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise SystemExit(f"{path}: not a tools/tune_fused.py --json file ({exc})") from None
@@ -63,6 +64,7 @@ def main(argv=None) -> int:
             raise SystemExit(f"--network {item}: RUN.json:ABSREL, the AbsRel as a fraction")
         nets.append((load_run(path), absrel))
     families: dict[str, list] = {"independent": [], "shared": []}
+    where = set()                                 # (sequence, frames) of the runs: the picture's title
     for path in args.runs:
         run = load_run(path)
         s = run["setting"]
@@ -71,6 +73,7 @@ def main(argv=None) -> int:
         if s.get("oracle_edge_sigma"):
             raise SystemExit(f"{path}: edge noise {s['oracle_edge_sigma']} is not a log-normal error of one σ "
                              "(run the oracle with --oracle-edge-sigma 0)")
+        where.add((s["seq"], tuple(s["frames"])))
         b = s.get("oracle_shared_sigma") or 0.0
         total = float(np.hypot(s["oracle_sigma"], b))
         absrel = lognormal_absrel(total)
@@ -112,7 +115,6 @@ def main(argv=None) -> int:
     if nets:
         ax.plot([], [], marker="*", color="grey", ms=11, mec="k", ls="", label="a network (★; its measured AbsRel)")
     ax.set_xscale("log")
-    where = {(r["setting"]["seq"], tuple(r["setting"]["frames"])) for r in [load_run(x) for x in args.runs]}
     ax.set_title("; ".join(f"sequence {q}, frames {f[0]}–{f[1]} ({f[2]})" for q, f in sorted(where)), fontsize=9)
     ax.set_xlabel("depth error fed to the map: AbsRel (%)")
     ax.set_ylabel("occupied F1 against LiDAR-FOV (%)")
